@@ -1,0 +1,297 @@
+"""The camera model: pinhole intrinsics with skew, a rigid pose, Brown–Conrady distortion."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from . import _validate
+from ._rotation import nearest_rotation
+
+
+class Camera(eqx.Module):
+    """A pinhole camera; a rig is one `Camera` whose fields carry a leading camera axis.
+
+    A world point `X` maps to camera coordinates `x_cam = R @ X + t`, to normalised coordinates
+    `(x, y) = x_cam[:2] / x_cam[2]`, through the lens distortion, and to pixels
+    `u = alpha_u * x_d + skew * y_d + u0`, `v = alpha_v * y_d + v0`. Pixels are `(x = column,
+    y = row)` with the origin at the centre of the top-left pixel (OpenCV's convention).
+
+    **Arguments:**
+
+    - `alpha_u`, `alpha_v`: focal lengths in pixels along x and y, `(*batch,)`.
+    - `u0`, `v0`: principal point in pixels, `(*batch,)`.
+    - `R`: world-to-camera rotation `(*batch, 3, 3)`; `t`: translation `(*batch, 3)`.
+    - `skew`: the K[0, 1] entry, `(*batch,)`; zero by default (the paper's model).
+    - `dist`: Brown–Conrady coefficients `(k1, k2, p1, p2, k3)` in OpenCV's order, `(*batch, 5)`;
+      zeros by default (the paper neglects distortion).
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> cam = mc.Camera(alpha_u=800.0, alpha_v=800.0, u0=320.0, v0=240.0,
+    ...                 R=jnp.eye(3), t=jnp.array([0.0, 0.0, 5.0]))
+    >>> cam.project(jnp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])).tolist()
+    [[320.0, 240.0], [480.0, 240.0]]
+
+    ```
+    """
+
+    alpha_u: Float[Array, "*batch"]
+    alpha_v: Float[Array, "*batch"]
+    u0: Float[Array, "*batch"]
+    v0: Float[Array, "*batch"]
+    skew: Float[Array, "*batch"]
+    R: Float[Array, "*batch 3 3"]
+    t: Float[Array, "*batch 3"]
+    dist: Float[Array, "*batch 5"]
+
+    def __init__(self, alpha_u, alpha_v, u0, v0, R, t, skew=None, dist=None):
+        alpha_u, alpha_v, u0, v0 = (jnp.asarray(a) for a in (alpha_u, alpha_v, u0, v0))
+        R, t = jnp.asarray(R), jnp.asarray(t)
+        batch = jnp.broadcast_shapes(
+            alpha_u.shape, alpha_v.shape, u0.shape, v0.shape, R.shape[:-2], t.shape[:-1]
+        )
+        dtype = jnp.result_type(alpha_u, alpha_v, u0, v0, R, t, float)
+        if skew is None:
+            skew = jnp.zeros(batch, dtype)
+        if dist is None:
+            dist = jnp.zeros((*batch, 5), dtype)
+        dist = jnp.asarray(dist, dtype)
+        if dist.shape[-1:] != (5,):
+            raise ValueError(
+                f"`dist` holds (k1, k2, p1, p2, k3), shape (..., 5); got {tuple(dist.shape)}."
+            )
+
+        def cast(x, shape):
+            return jnp.broadcast_to(jnp.asarray(x, dtype), shape)
+
+        self.alpha_u = cast(alpha_u, batch)
+        self.alpha_v = cast(alpha_v, batch)
+        self.u0 = cast(u0, batch)
+        self.v0 = cast(v0, batch)
+        self.skew = cast(skew, batch)
+        self.R = cast(R, (*batch, 3, 3))
+        self.t = cast(t, (*batch, 3))
+        self.dist = cast(dist, (*batch, 5))
+
+    # ------------------------------------------------------------------ derived quantities
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.alpha_u.shape)
+
+    def __len__(self) -> int:
+        if not self.batch_shape:
+            raise TypeError("a single Camera has no length; a rig has a leading camera axis.")
+        return self.batch_shape[0]
+
+    def __getitem__(self, index) -> Camera:
+        """Select cameras of a rig: `rig[0]`, `rig[1:3]`, `rig[ok]`."""
+        if not self.batch_shape:
+            raise TypeError("a single Camera cannot be indexed; a rig has a leading camera axis.")
+        return jax.tree_util.tree_map(lambda x: x[index], self)
+
+    @property
+    def K(self) -> Float[Array, "*batch 3 3"]:
+        """The intrinsic matrix `[[alpha_u, skew, u0], [0, alpha_v, v0], [0, 0, 1]]`."""
+        zero, one = jnp.zeros_like(self.u0), jnp.ones_like(self.u0)
+        rows = [
+            jnp.stack([self.alpha_u, self.skew, self.u0], -1),
+            jnp.stack([zero, self.alpha_v, self.v0], -1),
+            jnp.stack([zero, zero, one], -1),
+        ]
+        return jnp.stack(rows, -2)
+
+    @property
+    def center(self) -> Float[Array, "*batch 3"]:
+        """The optical centre in world coordinates, `-R^T t`."""
+        return -jnp.einsum("...ji,...j->...i", self.R, self.t)
+
+    def projection_matrix(self) -> Float[Array, "*batch 3 4"]:
+        """`P = K [R | t]` (distortion is not part of `P`)."""
+        return self.K @ jnp.concatenate([self.R, self.t[..., None]], axis=-1)
+
+    def to_camera(self, world) -> Float[Array, "*batch N 3"]:
+        """World points `(..., N, 3)` in camera coordinates, `R X + t`."""
+        return jnp.asarray(world) @ jnp.swapaxes(self.R, -1, -2) + self.t[..., None, :]
+
+    def depth(self, world) -> Float[Array, "*batch N"]:
+        """Depth of world points along the optical axis (positive in front of the camera)."""
+        return self.to_camera(world)[..., 2]
+
+    def project(self, world) -> Float[Array, "*batch N 2"]:
+        """Pixels of world points `(..., N, 3)`; leading axes broadcast against the rig's.
+
+        One target seen by a rig of C cameras: `world` `(N, 3)` gives pixels `(C, N, 2)`.
+        """
+        world = _validate.floating("world", world, (None, 3))
+        xc = self.to_camera(world)
+        xy = xc[..., :2] / xc[..., 2:3]
+        xd = distort(xy, self.dist[..., None, :])
+        u = self.alpha_u[..., None] * xd[..., 0] + self.skew[..., None] * xd[..., 1]
+        u = u + self.u0[..., None]
+        v = self.alpha_v[..., None] * xd[..., 1] + self.v0[..., None]
+        return jnp.stack([u, v], -1)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_matrices(cls, K, R, t, dist=None) -> Camera:
+        """A camera from `K` (upper triangular, `K[2, 2] = 1`), `R` and `t` as arrays."""
+        K = jnp.asarray(K)
+        K = K / K[..., 2:3, 2:3]
+        return cls(
+            alpha_u=K[..., 0, 0],
+            alpha_v=K[..., 1, 1],
+            u0=K[..., 0, 2],
+            v0=K[..., 1, 2],
+            skew=K[..., 0, 1],
+            R=R,
+            t=t,
+            dist=dist,
+        )
+
+    @classmethod
+    def from_projection(cls, P, *, skew: bool = True) -> Camera:
+        """Decompose `P ~ K [R | t]` in closed form (the paper's eqs. 16–23).
+
+        `P` is scaled so that `||m3|| = 1` with the sign that makes `det(M) > 0` (M = P[:, :3]);
+        for a real, unmirrored camera that is the sign that puts the points it sees in front of it
+        (`mvcalib.dlt` fixes the sign from the points themselves). Then `r3 = m3`, `Tz = m34`,
+        `u0 = m1·m3`, `v0 = m2·m3` and
+
+        - `skew=True` (default): `alpha_v = ||m2 - v0 m3||`, `r2 = (m2 - v0 m3) / alpha_v`,
+          `skew = (m1 - u0 m3)·r2`, `alpha_u = ||m1 - u0 m3 - skew r2||`. This is the paper's
+          eqs. 19–23 extended by one Gram–Schmidt step; with zero skew it is exactly them.
+        - `skew=False`: the paper's eqs. 19–21 as printed, `alpha_u = sqrt(m1·m1 - u0^2)`,
+          `r1 = (m1 - u0 m3) / alpha_u`, with the skew forced to zero.
+
+        Either way `R` is then re-orthogonalised to `U V^T` (its nearest rotation), with a
+        derivative that exists at orthogonal `R` (see `nearest_rotation`). Batched over leading
+        axes of `P`; differentiable.
+
+        **Example:**
+
+        ```python
+        >>> import jax.numpy as jnp, mvcalib as mc
+        >>> cam = mc.Camera(900.0, 880.0, 300.0, 200.0, jnp.eye(3), jnp.array([0.1, 0.2, 4.0]))
+        >>> back = mc.Camera.from_projection(3.0 * cam.projection_matrix())
+        >>> [round(float(x), 6) for x in (back.alpha_u, back.alpha_v, back.u0, back.t[2])]
+        [900.0, 880.0, 300.0, 4.0]
+
+        ```
+        """
+        P = _validate.floating("P", P, (3, 4))
+        kernel = _decompose_skew if skew else _decompose_paper
+        parts = jnp.vectorize(kernel, signature="(3,4)->(),(),(),(),(),(3,3),(3)")(P)
+        alpha_u, alpha_v, u0, v0, s, R, t = parts
+        return cls(alpha_u=alpha_u, alpha_v=alpha_v, u0=u0, v0=v0, skew=s, R=R, t=t)
+
+
+def _normalise_projection(P):
+    M = P[:, :3]
+    scale = jnp.where(jnp.linalg.det(M) < 0, -1.0, 1.0) / jnp.linalg.norm(M[2])
+    return P * scale
+
+
+def _decompose_skew(P):
+    P = _normalise_projection(P)
+    m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
+    m14, m24, m34 = P[0, 3], P[1, 3], P[2, 3]
+    u0, v0 = m1 @ m3, m2 @ m3  # eq. 17
+    q2 = m2 - v0 * m3
+    alpha_v = jnp.linalg.norm(q2)  # eq. 19 (|| m2 - v0 m3 || = sqrt(m2.m2 - v0^2))
+    r2 = q2 / alpha_v  # eq. 21
+    q1 = m1 - u0 * m3
+    s = q1 @ r2  # zero for the paper's skew-free camera
+    q1 = q1 - s * r2
+    alpha_u = jnp.linalg.norm(q1)  # eq. 19 with the skew removed
+    r1 = q1 / alpha_u  # eq. 20
+    tz = m34  # eq. 16
+    ty = (m24 - v0 * tz) / alpha_v  # eq. 23
+    tx = (m14 - u0 * tz - s * ty) / alpha_u  # eq. 22 with the skew term
+    R = nearest_rotation(jnp.stack([r1, r2, m3]))
+    return alpha_u, alpha_v, u0, v0, s, R, jnp.stack([tx, ty, tz])
+
+
+def _decompose_paper(P):
+    P = _normalise_projection(P)
+    m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
+    m14, m24, m34 = P[0, 3], P[1, 3], P[2, 3]
+    u0, v0 = m1 @ m3, m2 @ m3  # eq. 17-18
+    alpha_u = jnp.sqrt(m1 @ m1 - u0**2)  # eq. 19
+    alpha_v = jnp.sqrt(m2 @ m2 - v0**2)
+    r1 = (m1 - u0 * m3) / alpha_u  # eq. 20
+    r2 = (m2 - v0 * m3) / alpha_v  # eq. 21
+    tz = m34  # eq. 16
+    tx = (m14 - u0 * tz) / alpha_u  # eq. 22
+    ty = (m24 - v0 * tz) / alpha_v  # eq. 23
+    R = nearest_rotation(jnp.stack([r1, r2, m3]))  # "R = U V^T"
+    return alpha_u, alpha_v, u0, v0, jnp.zeros_like(u0), R, jnp.stack([tx, ty, tz])
+
+
+def distort(xy, dist):
+    """Brown–Conrady distortion of normalised coordinates `(..., 2)`, OpenCV's model and order.
+
+    `dist = (k1, k2, p1, p2, k3)`, broadcast against `xy[..., 0]`.
+    """
+    x, y = xy[..., 0], xy[..., 1]
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return jnp.stack([xd, yd], -1)
+
+
+def image_to_pixel(image_xy, pixel_size, *, image_size=None, center=None, sx: float = 1.0):
+    """Tsai's conversion from image-plane coordinates to pixels (the paper's Section IV.2).
+
+    `Xf = Sx dx^-1 Xd + Cx`, `Yf = dy^-1 Yd + Cy`, where `(dx, dy) = pixel_size` is the centre
+    to centre distance of sensor elements (e.g. mm) and `(Cx, Cy)` the image centre, by default
+    the midpoint of the pixel array `(width / 2, height / 2)` as the paper takes it (it has a
+    1000 x 1100 image and centre (500, 550)). Give either `image_size=(width, height)` or `center`.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> mc.image_to_pixel([0.0, 0.0], (0.01, 0.01), image_size=(1000, 1100)).tolist()
+    [500.0, 550.0]
+
+    ```
+    """
+    center = _image_center(image_size, center)
+    xy = _validate.floating("image_xy", image_xy)
+    dx, dy = (jnp.asarray(p, xy.dtype) for p in pixel_size)
+    return jnp.stack([sx * xy[..., 0] / dx + center[0], xy[..., 1] / dy + center[1]], -1)
+
+
+def pixel_to_image(pixels, pixel_size, *, image_size=None, center=None, sx: float = 1.0):
+    """Inverse of `image_to_pixel`: pixels to image-plane coordinates in the units of `pixel_size`.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> mc.pixel_to_image([600.0, 550.0], (0.01, 0.01), image_size=(1000, 1100)).tolist()
+    [1.0, 0.0]
+
+    ```
+    """
+    center = _image_center(image_size, center)
+    px = _validate.floating("pixels", pixels)
+    dx, dy = (jnp.asarray(p, px.dtype) for p in pixel_size)
+    return jnp.stack([(px[..., 0] - center[0]) * dx / sx, (px[..., 1] - center[1]) * dy], -1)
+
+
+def _image_center(image_size, center):
+    if (image_size is None) == (center is None):
+        raise ValueError("give exactly one of `image_size=(width, height)` or `center=(cx, cy)`.")
+    if center is None:
+        width, height = image_size
+        return (width / 2.0, height / 2.0)
+    return tuple(np.asarray(center, dtype=float).tolist())

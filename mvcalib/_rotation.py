@@ -1,0 +1,75 @@
+"""Rotations: the nearest rotation to a matrix, with derivatives that exist where R is orthogonal."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def hat(w):
+    """The skew-symmetric matrix `[w]x` with `hat(w) @ v == cross(w, v)`."""
+    z = jnp.zeros_like(w[..., 0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -w[..., 2], w[..., 1]], -1),
+            jnp.stack([w[..., 2], z, -w[..., 0]], -1),
+            jnp.stack([-w[..., 1], w[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def vee(S):
+    """Inverse of `hat` on the skew part of `S`."""
+    return 0.5 * jnp.stack(
+        [S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]], -1
+    )
+
+
+@jax.custom_jvp
+def _nearest_rotation(H):
+    U, _, Vt = jnp.linalg.svd(H)
+    d = jnp.where(jnp.linalg.det(U @ Vt) < 0, -1.0, 1.0).astype(H.dtype)
+    return (U * jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ Vt
+
+
+@_nearest_rotation.defjvp
+def _nearest_rotation_jvp(primals, tangents):
+    # JAX's SVD derivative divides by differences of singular values, which are all equal when
+    # H is already a rotation (re-orthogonalising a good R) or symmetric (a cube of points), so it
+    # gives NaN exactly where calibration lives. Differentiate the optimality condition instead:
+    # R = argmax tr(R^T H) makes M = R^T H symmetric; keeping it symmetric under H + dH with
+    # R -> R (I + [w]x) gives [w]x M + M [w]x = R^T dH - dH^T R, i.e. (tr(M) I - M) w = b.
+    # That matrix is singular only when the best rotation itself is not unique.
+    (H,), (dH,) = primals, tangents
+    R = _nearest_rotation(H)
+    M = R.T @ H
+    M = 0.5 * (M + M.T)
+    A = jnp.trace(M) * jnp.eye(3, dtype=H.dtype) - M
+    b = 2.0 * vee(R.T @ dH)
+    w = jnp.linalg.solve(A, b)
+    return R, R @ hat(w)
+
+
+def nearest_rotation(H):
+    """The rotation `R` (det +1) maximising `tr(R^T H)`: `U diag(1, 1, det(U V^T)) V^T`.
+
+    For a nearly orthogonal `H` this is the re-orthogonalisation `R = U V^T` of the paper; for a
+    cross-covariance `H = sum w (y - ȳ)(x - x̄)^T` it is the Kabsch rotation. Batched over leading
+    axes; its derivative is defined wherever the answer is unique (also at orthogonal `H`).
+    """
+    return jnp.vectorize(_nearest_rotation, signature="(3,3)->(3,3)")(H)
+
+
+def rodrigues(rvec):
+    """Rotation matrix of an axis-angle vector (OpenCV's Rodrigues), gradient-safe at zero."""
+    theta2 = jnp.sum(rvec * rvec, axis=-1)
+    small = theta2 < 1e-12
+    safe2 = jnp.where(small, 1.0, theta2)
+    theta = jnp.sqrt(safe2)
+    # sin(t)/t and (1 - cos t)/t^2 with their Taylor series near 0 (jaxlie does the same).
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / safe2)
+    K = hat(rvec)
+    eye = jnp.eye(3, dtype=rvec.dtype)
+    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)

@@ -1,0 +1,41 @@
+"""Per-camera outcomes of batched calibration: values, not exceptions (like `optx.RESULTS`)."""
+
+from __future__ import annotations
+
+import enum
+
+
+class Status(enum.IntEnum):
+    """Why a camera of a batch was or was not calibrated. `int(status) == 0` means success.
+
+    Compare arrays of statuses with members: `result.status == mc.Status.DEGENERATE`.
+    """
+
+    OK = 0
+    TOO_FEW_POINTS = 1
+    DEGENERATE = 2
+    NON_FINITE = 3
+    POINTS_BEHIND = 4
+    MIRRORED = 5
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.OK: "calibrated",
+    Status.TOO_FEW_POINTS: "fewer than 6 visible points: the 11 unknowns of P are not determined",
+    Status.DEGENERATE: (
+        "degenerate geometry: the visible world points are coplanar, collinear or repeated, so P "
+        "is not unique (use a non-coplanar target, or mvcalib's planar calibration)"
+    ),
+    Status.NON_FINITE: "NaN or inf among the visible points",
+    Status.POINTS_BEHIND: (
+        "the visible points lie on both sides of the camera: some correspondences are wrong"
+    ),
+    Status.MIRRORED: (
+        "the solution is a mirrored camera (det K R < 0): check the pixel convention "
+        "(x = column, y = row, y pointing down) or mislabelled points"
+    ),
+}

@@ -1,0 +1,131 @@
+"""Validation at the Python boundary.
+
+Shapes and dtypes are checked statically, so every check also works on tracers (inside a user's
+`jax.jit` or `jax.grad`); values (NaN/inf, visible-point counts) are checked only on concrete
+arrays. Kernels below this layer assume valid input and report per-camera problems as statuses.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+MIN_POINTS = 6  # a 3x4 projection matrix has 11 degrees of freedom; each point gives 2 equations
+
+
+def is_concrete(*arrays) -> bool:
+    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def floating(name: str, x, last_dims: tuple[int, ...] | None = None):
+    """`x` as a floating JAX array; integers are promoted, everything else is refused."""
+    if isinstance(x, (list, tuple)):
+        try:
+            x = np.asarray(x)
+        except ValueError as e:  # ragged nested lists
+            raise ValueError(f"`{name}` must be a rectangular array of numbers: {e}") from None
+    if not hasattr(x, "dtype"):
+        x = np.asarray(x)
+    dtype = np.dtype(x.dtype)
+    if dtype.kind in "iu":
+        x = jnp.asarray(x, dtype=jnp.result_type(float))
+    elif dtype.kind != "f":
+        raise ValueError(
+            f"`{name}` must hold real floating-point numbers; got dtype {dtype}. "
+            "Convert it with `.astype(float)` (complex, boolean and object arrays are refused)."
+        )
+    elif dtype.itemsize < 4:
+        raise ValueError(
+            f"`{name}` has dtype {dtype}, which is too coarse for calibration "
+            "(pixel coordinates above 2048 cannot even be represented exactly); "
+            "use float32 or float64."
+        )
+    x = jnp.asarray(x)
+    if last_dims is not None:
+        k = len(last_dims)
+        if x.ndim < k or tuple(x.shape[x.ndim - k :]) != tuple(
+            d if d is not None else x.shape[x.ndim - k + i] for i, d in enumerate(last_dims)
+        ):
+            want = ", ".join("N" if d is None else str(d) for d in last_dims)
+            raise ValueError(f"`{name}` must have shape (..., {want}); got {tuple(x.shape)}.")
+    return x
+
+
+def boolean_mask(name: str, mask, shape: tuple[int, ...]):
+    """A boolean visibility mask that broadcasts to `shape`."""
+    if mask is None:
+        return jnp.ones(shape, dtype=bool)
+    if isinstance(mask, (list, tuple)):
+        mask = np.asarray(mask)
+    dtype = np.dtype(getattr(mask, "dtype", np.asarray(mask).dtype))
+    if dtype != np.bool_:
+        raise ValueError(
+            f"`{name}` must be a boolean array (True = visible); got dtype {dtype}. "
+            "Use `mask.astype(bool)` if it holds 0/1."
+        )
+    mask = jnp.asarray(mask)
+    try:
+        np.broadcast_shapes(tuple(mask.shape), shape)
+    except ValueError:
+        raise ValueError(
+            f"`{name}` of shape {tuple(mask.shape)} does not broadcast to the points' shape {shape}."
+        ) from None
+    return jnp.broadcast_to(mask, np.broadcast_shapes(tuple(mask.shape), shape))
+
+
+def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS):
+    """Check a (world, pixels, mask) triple; return them as arrays of one floating dtype.
+
+    `world` is `(..., N, 3)` and `pixels` `(..., N, 2)`; their leading axes broadcast (one target
+    seen by a whole rig is `world` of shape `(N, 3)` with `pixels` of shape `(C, N, 2)`).
+    """
+    world = floating("world", world, (None, 3))
+    pixels = floating("pixels", pixels, (None, 2))
+    if world.shape[-2] != pixels.shape[-2]:
+        raise ValueError(
+            f"`world` has {world.shape[-2]} points but `pixels` has {pixels.shape[-2]} "
+            f"(shapes {tuple(world.shape)} and {tuple(pixels.shape)}); "
+            "row i of both must be the same point."
+        )
+    try:
+        batch = np.broadcast_shapes(tuple(world.shape[:-2]), tuple(pixels.shape[:-2]))
+    except ValueError:
+        raise ValueError(
+            f"the leading (camera) axes of `world` {tuple(world.shape[:-2])} and `pixels` "
+            f"{tuple(pixels.shape[:-2])} do not broadcast."
+        ) from None
+    n = world.shape[-2]
+    if n < min_points:
+        raise ValueError(
+            f"at least {min_points} points are needed; got {n}. A projection matrix has 11 "
+            "degrees of freedom and each point gives two equations."
+        )
+    if 0 in batch:
+        raise ValueError(f"the camera axes are empty (batch shape {batch}).")
+    dtype = jnp.result_type(world.dtype, pixels.dtype)
+    world, pixels = world.astype(dtype), pixels.astype(dtype)
+    mask = boolean_mask("mask", mask, (*batch, n))
+    if is_concrete(world, pixels, mask):
+        _check_finite(world, pixels, mask)
+    return world, pixels, mask
+
+
+def _check_finite(world, pixels, mask):
+    mask = np.asarray(mask)
+    for name, x in (("world", world), ("pixels", pixels)):
+        x = np.asarray(x)
+        finite = np.all(np.isfinite(x), axis=-1)
+        bad = np.broadcast_to(~finite, mask.shape) & mask
+        if bad.any():
+            where = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(
+                f"`{name}` has {int(bad.sum())} non-finite (NaN or inf) entries among the "
+                f"visible points, the first at index {where}. Mask them out "
+                "(mask[...] = False) or fix the data."
+            )
+
+
+def at_least(name: str, x, n: int, what: str):
+    if x.shape[-2] < n:
+        raise ValueError(f"`{name}` needs at least {n} {what}; got shape {tuple(x.shape)}.")

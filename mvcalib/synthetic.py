@@ -1,0 +1,233 @@
+"""Synthetic rigs with ground truth, for tests, demos and benchmarks. Deterministic given a key."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._camera import Camera
+from ._registration import RigidTransform
+from .targets import Target, box_corner
+
+
+class SyntheticRig(eqx.Module):
+    """Cameras with known parameters looking at a target, and what they observe.
+
+    - `cameras`: the true cameras, batch `(C,)`.
+    - `world`: target points `(N, 3)` (shared by all cameras).
+    - `pixels_true`: exact projections `(C, N, 2)`; `pixels`: with Gaussian noise added.
+    - `mask`: `(C, N)`, True where the point is in front of the camera and inside the image.
+    """
+
+    cameras: Camera
+    world: Float[Array, "N 3"]
+    pixels_true: Float[Array, "C N 2"]
+    pixels: Float[Array, "C N 2"]
+    mask: Bool[Array, "C N"]
+    image_size: tuple[int, int] = eqx.field(static=True)
+
+
+def look_at(center, target, up, roll=0.0):
+    """World-to-camera `(R, t)` of a camera at `center` looking at `target` (x right, y down)."""
+    forward = target - center
+    z = forward / jnp.linalg.norm(forward, axis=-1, keepdims=True)
+    x = jnp.cross(z, up)
+    x = x / jnp.linalg.norm(x, axis=-1, keepdims=True)
+    y = jnp.cross(z, x)
+    c, s = jnp.cos(roll)[..., None], jnp.sin(roll)[..., None]
+    x, y = c * x + s * y, -s * x + c * y
+    R = jnp.stack([x, y, z], axis=-2)
+    t = -jnp.einsum("...ij,...j->...i", R, center)
+    return R, t
+
+
+def _default_dtype(dtype):
+    return jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+
+
+def random_cameras(
+    key,
+    n_cameras: int,
+    target: Target | None = None,
+    *,
+    image_size: tuple[int, int] = (1000, 1100),
+    focal: tuple[float, float] = (800.0, 2000.0),
+    max_angle: float = 30.0,
+    fill: tuple[float, float] = (0.45, 0.8),
+    dtype=None,
+) -> Camera:
+    """Realistic random cameras around `target` (default: `targets.box_corner()`).
+
+    Each camera looks at the target's centroid (jittered by 5 % of its size) from a direction
+    within `max_angle` degrees of the diagonal `(1, 1, 1)` of the box corner, with a random roll
+    of up to 15 degrees, focal length in `focal` (pixels), aspect ratio within 2 %, principal point
+    within 30 px of the image centre, and a distance such that the target fills the fraction
+    `fill` of the image's smaller side.
+    """
+    target = box_corner() if target is None else target
+    dtype = _default_dtype(dtype)
+    width, height = image_size
+    keys = jax.random.split(key, 8)
+    C = n_cameras
+    uniform = lambda k, lo, hi, shape=(C,): jax.random.uniform(k, shape, dtype, lo, hi)  # noqa: E731
+
+    pts = jnp.asarray(target.points, dtype)
+    centre = pts.mean(0)
+    radius = jnp.max(jnp.linalg.norm(pts - centre, axis=-1))
+    diag = jnp.ones(3, dtype) / jnp.sqrt(3.0)
+    # A direction within max_angle of the diagonal: tilt it about a random perpendicular axis.
+    axis = jax.random.normal(keys[0], (C, 3), dtype)
+    axis = axis - (axis @ diag)[:, None] * diag
+    axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
+    tilt = jnp.deg2rad(max_angle) * jnp.sqrt(uniform(keys[1], 0.0, 1.0))
+    direction = jnp.cos(tilt)[:, None] * diag + jnp.sin(tilt)[:, None] * jnp.cross(axis, diag)
+
+    f = uniform(keys[2], *focal)
+    aspect = uniform(keys[3], 0.98, 1.02)
+    frac = uniform(keys[4], *fill)
+    distance = radius * f / (frac * min(width, height) / 2.0)
+    look = centre + 0.05 * radius * jax.random.normal(keys[5], (C, 3), dtype)
+    up = jnp.array([0.0, 0.0, 1.0], dtype)
+    roll = jnp.deg2rad(uniform(keys[6], -15.0, 15.0))
+    R, t = look_at(centre + distance[:, None] * direction, look, up, roll)
+    pp = uniform(keys[7], -30.0, 30.0, (C, 2))
+    return Camera(f, f * aspect, width / 2.0 + pp[:, 0], height / 2.0 + pp[:, 1], R, t)
+
+
+def observe(key, cameras: Camera, world, noise: float, image_size) -> tuple:
+    """Project `world` with `cameras`, add Gaussian pixel noise; return (true, noisy, mask)."""
+    true = cameras.project(world)
+    noisy = true + noise * jax.random.normal(key, true.shape, true.dtype)
+    width, height = image_size
+    inside = (
+        (true[..., 0] >= 0) & (true[..., 0] <= width - 1)
+        & (true[..., 1] >= 0) & (true[..., 1] <= height - 1)
+    )
+    mask = inside & (cameras.depth(world) > 0)
+    return true, noisy, mask
+
+
+def random_rig(
+    key,
+    n_cameras: int = 4,
+    target: Target | None = None,
+    *,
+    noise: float = 0.0,
+    image_size: tuple[int, int] = (1000, 1100),
+    dtype=None,
+    **camera_options,
+) -> SyntheticRig:
+    """A rig of `n_cameras` random cameras (see `random_cameras`) observing `target`.
+
+    **Example:**
+
+    ```python
+    >>> import jax, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=8, noise=0.5)
+    >>> rig.pixels.shape, bool(rig.mask.all())
+    ((8, 19, 2), True)
+
+    ```
+    """
+    target = box_corner() if target is None else target
+    dtype = _default_dtype(dtype)
+    k_cam, k_noise = jax.random.split(key)
+    cameras = random_cameras(
+        k_cam, n_cameras, target, image_size=image_size, dtype=dtype, **camera_options
+    )
+    world = jnp.asarray(target.points, dtype)
+    true, noisy, mask = observe(k_noise, cameras, world, noise, image_size)
+    return SyntheticRig(cameras, world, true, noisy, mask, tuple(image_size))
+
+
+class PaperScene(eqx.Module):
+    """The paper's experiment: one camera, four snapshots of the target in four placements.
+
+    The camera stays where it is in the room (global frame); the target is put down in four
+    placements, so each snapshot sees it from another position and orientation, and each
+    calibration is expressed in that snapshot's local (target) frame. Registering every local
+    frame into the global one must give back the same camera, so that a fixed room point lands
+    on one pixel from all four (the paper's Section IV.2).
+
+    - `camera`: the true camera in the global frame.
+    - `local_cameras`: the same camera in each snapshot's local frame, batch `(4,)`.
+    - `placements`: local-to-global transforms of the target, batch `(4,)`.
+    - `world`: target dots in the local frame `(19, 3)`.
+    - `world_global`: measured global coordinates of the `registration_ids` dots `(4, 18, 3)`.
+    - `pixels`, `pixels_true`, `mask`: observations `(4, 19, 2)` and visibility `(4, 19)`.
+    - `calibration_ids`: the 8 dots used for the DLT; `registration_ids`: the 18 measured in both
+      frames.
+    - `fixed_point`: a room point (global frame) whose true pixel is (158, 88), as in the paper.
+    """
+
+    camera: Camera
+    local_cameras: Camera
+    placements: RigidTransform
+    world: Float[Array, "19 3"]
+    world_global: Float[Array, "4 18 3"]
+    pixels_true: Float[Array, "4 19 2"]
+    pixels: Float[Array, "4 19 2"]
+    mask: Bool[Array, "4 19"]
+    calibration_ids: np.ndarray = eqx.field(static=True)
+    registration_ids: np.ndarray = eqx.field(static=True)
+    fixed_point: Float[Array, "3"]
+    image_size: tuple[int, int] = eqx.field(static=True)
+
+
+PAPER_PIXEL = (158.0, 88.0)
+
+
+def paper_scene(
+    key=None, *, noise: float = 0.3, global_noise: float = 0.0, dtype=None
+) -> PaperScene:
+    """The synthetic version of the paper's experiment (see `PaperScene`).
+
+    1000 x 1100 images (width x height), the 19-dot box-corner target, 8 dots per snapshot for
+    calibration (spread over the three faces), 18 for registration, Gaussian pixel noise `noise`
+    and global-coordinate measurement noise `global_noise` (in the target's units).
+    """
+    key = jax.random.key(2010) if key is None else key
+    dtype = _default_dtype(dtype)
+    target = box_corner()
+    image_size = (1000, 1100)
+    k_views, k_noise, k_global = jax.random.split(key, 3)
+    # Four views of the target by one camera: same intrinsics, four poses relative to the target.
+    views = random_cameras(k_views, 4, target, image_size=image_size, dtype=dtype)
+    intrinsics = dict(alpha_u=1400.0, alpha_v=1392.0, u0=512.0, v0=541.0)
+    local = Camera(R=views.R, t=views.t, **intrinsics)
+    # The camera in the room: 2.5 m up and back from the room origin, looking at it.
+    R_g, t_g = look_at(
+        jnp.array([-1500.0, -1800.0, 1600.0], dtype), jnp.zeros(3, dtype),
+        jnp.array([0.0, 0.0, 1.0], dtype),
+    )
+    camera = Camera(R=R_g, t=t_g, **intrinsics)
+    # local -> global = (global -> camera)^-1 o (local -> camera)
+    placements = RigidTransform(R_g, t_g).inverse() @ RigidTransform(local.R, local.t)
+
+    world = jnp.asarray(target.points, dtype)
+    true, noisy, mask = observe(k_noise, local, world, noise, image_size)
+    registration_ids = np.asarray(target.global_ids)
+    exact_global = placements.apply(world[registration_ids])
+    world_global = exact_global + global_noise * jax.random.normal(
+        k_global, exact_global.shape, dtype
+    )
+    # A fixed room point on the ray of pixel (158, 88), 2.2 m in front of the camera.
+    ray = jnp.linalg.solve(camera.K, jnp.array([*PAPER_PIXEL, 1.0], dtype))
+    fixed_point = RigidTransform(R_g, t_g).inverse().apply((2200.0 * ray / ray[2])[None])[0]
+    return PaperScene(
+        camera=camera,
+        local_cameras=local,
+        placements=placements,
+        world=world,
+        world_global=world_global,
+        pixels_true=true,
+        pixels=noisy,
+        mask=mask,
+        calibration_ids=np.array([0, 2, 4, 7, 9, 11, 13, 16]),
+        registration_ids=registration_ids,
+        fixed_point=fixed_point,
+        image_size=image_size,
+    )

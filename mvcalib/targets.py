@@ -1,0 +1,74 @@
+"""Calibration targets: the paper's 19-dot object as dots on the three faces of a box corner."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """A calibration object: dot centres in its own (local) frame.
+
+    **Fields:**
+
+    - `name`: a label.
+    - `points`: dot centres `(M, 3)` in the local frame, in `units`.
+    - `dot_radius`: radius of the printed dots, in `units`.
+    - `global_ids`: indices of the dots whose coordinates were also measured in the global (room)
+      frame (the paper measures 18 of its 19).
+    - `local_to_global`: the 4 x 4 matrix of the known placement `Y = R X + T` used for
+      `global_points`.
+    """
+
+    name: str
+    points: np.ndarray
+    dot_radius: float
+    global_ids: np.ndarray
+    local_to_global: np.ndarray
+    units: str = "mm"
+
+    @property
+    def global_points(self) -> np.ndarray:
+        """The `global_ids` dots in the global frame, `(len(global_ids), 3)`."""
+        X = self.points[self.global_ids]
+        return X @ self.local_to_global[:3, :3].T + self.local_to_global[:3, 3]
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.points.mean(axis=0)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def box_corner(size: float = 200.0) -> Target:
+    """The paper's 19-dot target, made non-coplanar by putting it on the inside of a box corner.
+
+    Three faces meet at the local origin: the floor `z = 0`, the wall `y = 0` and the wall `x = 0`,
+    each `size` wide. Each face carries a 3 x 2 grid of dots (18 dots, ids 0–17, measured in both
+    frames as in the paper) and the corner itself is dot 18. Seen from anywhere in the positive
+    octant all three faces are visible, and the dots lie on three planes, far from coplanar, so
+    eight dots spread over the faces already determine a camera.
+    """
+    a, b, c = 0.2 * size, 0.5 * size, 0.8 * size
+    rows, cols = (a, 0.6 * size), (a, b, c)
+    floor = [(u, v, 0.0) for v in rows for u in cols]
+    wall_y = [(u, 0.0, v) for v in rows for u in cols]
+    wall_x = [(0.0, u, v) for v in rows for u in cols]
+    points = np.array(floor + wall_y + wall_x + [(0.0, 0.0, 0.0)], dtype=float)
+    # A placement in the room: rotated 30 degrees about the vertical, 1.2 m from the room origin.
+    angle = np.deg2rad(30.0)
+    R = np.array(
+        [[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0, 0, 1.0]]
+    )
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, (1200.0, 300.0, 750.0)
+    return Target(
+        name="box corner, 19 dots",
+        points=points,
+        dot_radius=0.04 * size,
+        global_ids=np.arange(18),
+        local_to_global=M,
+    )
