@@ -3,28 +3,47 @@
 The public API is what this module re-exports; everything else is private.
 """
 
-from . import synthetic as synthetic, targets as targets
-from ._rotation import nearest_rotation as nearest_rotation, rodrigues as rodrigues
-from ._status import Status as Status
+from . import synthetic as synthetic
+from . import targets as targets
 from ._camera import (
     Camera as Camera,
+)
+from ._camera import (
     distort as distort,
+)
+from ._camera import (
     image_to_pixel as image_to_pixel,
+)
+from ._camera import (
     pixel_to_image as pixel_to_image,
 )
 from ._dlt import dlt as dlt
 from ._pipeline import (
     Calibration as Calibration,
+)
+from ._pipeline import (
     CalibrationError as CalibrationError,
+)
+from ._pipeline import (
     calibrate as calibrate,
 )
 from ._registration import (
     RigidTransform as RigidTransform,
+)
+from ._registration import (
     procrustes as procrustes,
+)
+from ._registration import (
     procrustes_paper as procrustes_paper,
+)
+from ._registration import (
     to_global as to_global,
 )
-from ._report import ReprojectionReport as ReprojectionReport, reprojection_report as reprojection_report
+from ._report import ReprojectionReport as ReprojectionReport
+from ._report import reprojection_report as reprojection_report
+from ._rotation import nearest_rotation as nearest_rotation
+from ._rotation import rodrigues as rodrigues
+from ._status import Status as Status
 from .targets import Target as Target
 
 __version__ = "0.1.0"

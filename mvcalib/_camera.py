@@ -159,8 +159,10 @@ class Camera(eqx.Module):
         """Decompose `P ~ K [R | t]` in closed form (the paper's eqs. 16–23).
 
         `P` is scaled so that `||m3|| = 1` with the sign that makes `det(M) > 0` (M = P[:, :3]);
-        for a real, unmirrored camera that is the sign that puts the points it sees in front of it
-        (`mvcalib.dlt` fixes the sign from the points themselves). Then `r3 = m3`, `Tz = m34`,
+        for a camera in a right-handed world frame that is the sign that puts the points it sees
+        in front of it (`mvcalib.dlt` fixes the sign from the points themselves; in a mirrored,
+        left-handed world frame the points end up at negative depth, and every pixel is still
+        right). Then `r3 = m3`, `Tz = m34`,
         `u0 = m1·m3`, `v0 = m2·m3` and
 
         - `skew=True` (default): `alpha_v = ||m2 - v0 m3||`, `r2 = (m2 - v0 m3) / alpha_v`,
@@ -179,7 +181,7 @@ class Camera(eqx.Module):
         >>> import jax.numpy as jnp, mvcalib as mc
         >>> cam = mc.Camera(900.0, 880.0, 300.0, 200.0, jnp.eye(3), jnp.array([0.1, 0.2, 4.0]))
         >>> back = mc.Camera.from_projection(3.0 * cam.projection_matrix())
-        >>> [round(float(x), 6) for x in (back.alpha_u, back.alpha_v, back.u0, back.t[2])]
+        >>> [round(float(x), 2) for x in (back.alpha_u, back.alpha_v, back.u0, back.t[2])]
         [900.0, 880.0, 300.0, 4.0]
 
         ```

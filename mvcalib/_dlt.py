@@ -62,7 +62,7 @@ def _design_matrix(world, pixels, visible):
 
 
 def _dlt_kernel(world, pixels, mask, rcond):
-    """One camera: (N, 3), (N, 2), (N,) -> P (3, 4), status, condition number, singular values."""
+    """One camera: (N, 3), (N, 2), (N,) -> P (3, 4), status, condition number, mirrored."""
     dtype = world.dtype
     finite = jnp.all(jnp.isfinite(world), -1) & jnp.all(jnp.isfinite(pixels), -1)
     all_finite = jnp.all(finite | ~mask)
@@ -79,9 +79,7 @@ def _dlt_kernel(world, pixels, mask, rcond):
     pixels_n = pixels @ T2[:2, :2].T + T2[:2, 2]
 
     v, sv = _null_vector(_design_matrix(world_n, pixels_n, visible))
-    T2_inv = jnp.array(
-        [[1 / s2, 0, c2[0]], [0, 1 / s2, c2[1]], [0, 0, 1]], dtype=dtype
-    )
+    T2_inv = jnp.array([[1 / s2, 0, c2[0]], [0, 1 / s2, c2[1]], [0, 0, 1]], dtype=dtype)
     P = T2_inv @ v.reshape(3, 4) @ T3
 
     # ||m3|| = 1 (Faugeras–Toscani), with the sign that puts the visible points in front.
@@ -98,20 +96,21 @@ def _dlt_kernel(world, pixels, mask, rcond):
             n_visible < _validate.MIN_POINTS,
             ~(sv[-2] > rcond * sv[0]),
             jnp.any(visible & (depth <= 0)),
-            jnp.linalg.det(P[:, :3]) < 0,
         ],
-        [Status.NON_FINITE, Status.TOO_FEW_POINTS, Status.DEGENERATE, Status.POINTS_BEHIND,
-         Status.MIRRORED],
+        [Status.NON_FINITE, Status.TOO_FEW_POINTS, Status.DEGENERATE, Status.POINTS_BEHIND],
         Status.OK,
     ).astype(jnp.int32)
     P = jnp.where(status == Status.OK, P, jnp.nan)
-    return P, status, condition, sv
+    # With the points in front, det(M) < 0 means the world frame is mirrored relative to the
+    # camera: left-handed world coordinates (the Oxford VGG sets are) or pixels with y up.
+    mirrored = jnp.linalg.det(P[:, :3]) < 0
+    return P, status, condition, mirrored
 
 
 @functools.partial(jax.jit, static_argnames="rcond")
 def _dlt_batched(world, pixels, mask, rcond):
     kernel = functools.partial(_dlt_kernel, rcond=rcond)
-    return jnp.vectorize(kernel, signature="(n,3),(n,2),(n)->(3,4),(),(),(k)")(world, pixels, mask)
+    return jnp.vectorize(kernel, signature="(n,3),(n,2),(n)->(3,4),(),(),()")(world, pixels, mask)
 
 
 def default_rcond(dtype) -> float:
@@ -120,7 +119,7 @@ def default_rcond(dtype) -> float:
 
 
 def solve(world, pixels, mask=None, *, rcond: float | None = None):
-    """Validated DLT returning `(P, status, condition, singular_values)`; see `dlt`."""
+    """Validated DLT returning `(P, status, condition, mirrored)`; see `dlt`."""
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
     rcond = default_rcond(world.dtype) if rcond is None else float(rcond)
     return _dlt_batched(world, pixels, mask, rcond)

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _validate
-from . import _dlt
-from ._status import Status
+from . import _dlt, _validate
 from ._camera import Camera
 from ._report import ReprojectionReport, compute_report, format_table
+from ._status import Status
 
 
 class CalibrationError(ValueError):
@@ -27,6 +25,10 @@ class Calibration(eqx.Module):
     - `status`: a `Status` code per camera (`int32`); `ok` is `status == Status.OK`.
     - `condition`: the DLT's condition number `s_1 / s_11` after normalisation (large means
       nearly degenerate geometry).
+    - `mirrored`: True where the world frame is mirrored relative to the camera (det M < 0 with
+      the points in front): left-handed world coordinates, as in the Oxford VGG data, or pixels
+      with y pointing up. `P` is right either way; `cameras` then has a proper rotation and
+      the points at negative depth, and still projects every point correctly.
     """
 
     cameras: Camera
@@ -34,6 +36,7 @@ class Calibration(eqx.Module):
     report: ReprojectionReport
     status: Int[Array, "*batch"]
     condition: Float[Array, "*batch"]
+    mirrored: Bool[Array, "*batch"]
 
     @property
     def ok(self) -> Bool[Array, "*batch"]:
@@ -75,7 +78,7 @@ def calibrate(
     Runs the normalised DLT (`mvcalib.dlt`), the closed-form decomposition
     (`Camera.from_projection`) and the back-projection report for all cameras at once. A camera
     whose data cannot determine it (fewer than 6 visible points, coplanar or collinear points,
-    NaN in traced input, points on both sides of the camera, a mirrored solution) gets a status
+    NaN in traced input, points on both sides of the camera) gets a status
     that says so and NaN parameters; the others are exactly what they would be alone. Nothing
     raises inside `jax.jit`.
 
@@ -99,10 +102,12 @@ def calibrate(
     ```
     """
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
-    P, status, condition, _ = _dlt.solve(world, pixels, mask, rcond=rcond)
+    P, status, condition, mirrored = _dlt.solve(world, pixels, mask, rcond=rcond)
     cameras = Camera.from_projection(P, skew=skew)
     report = compute_report(cameras, world, pixels, mask)
-    result = Calibration(cameras=cameras, P=P, report=report, status=status, condition=condition)
+    result = Calibration(
+        cameras=cameras, P=P, report=report, status=status, condition=condition, mirrored=mirrored
+    )
     if strict and _validate.is_concrete(status):
         result.raise_if_failed()
     return result

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import _validate
-from ._rotation import nearest_rotation
 from ._camera import Camera
+from ._rotation import nearest_rotation
 
 
 class RigidTransform(eqx.Module):
@@ -43,19 +43,19 @@ class RigidTransform(eqx.Module):
         return jnp.asarray(points) @ jnp.swapaxes(self.R, -1, -2) + self.t[..., None, :]
 
     def inverse(self) -> RigidTransform:
-        """`X = R^T (Y - t)`; assumes `R` is a rotation (true of everything `procrustes` returns)."""
+        """`X = R^T (Y - t)`; assumes `R` is a rotation (as everything `procrustes` returns)."""
         Rt = jnp.swapaxes(self.R, -1, -2)
         return RigidTransform(Rt, -jnp.einsum("...ij,...j->...i", Rt, self.t))
 
     def __matmul__(self, other: RigidTransform) -> RigidTransform:
-        return RigidTransform(self.R @ other.R, jnp.einsum("...ij,...j->...i", self.R, other.t) + self.t)
+        return RigidTransform(
+            self.R @ other.R, jnp.einsum("...ij,...j->...i", self.R, other.t) + self.t
+        )
 
     def as_matrix(self) -> Float[Array, "*batch 4 4"]:
         """The 4 x 4 homogeneous matrix."""
         top = jnp.concatenate([self.R, self.t[..., None]], axis=-1)
-        bottom = jnp.broadcast_to(
-            jnp.array([0, 0, 0, 1], self.R.dtype), (*top.shape[:-2], 1, 4)
-        )
+        bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], self.R.dtype), (*top.shape[:-2], 1, 4))
         return jnp.concatenate([top, bottom], axis=-2)
 
 
@@ -73,7 +73,7 @@ def procrustes(
     dst: Float[Array, "*batch N 3"],
     weights: Float[Array, "*batch N"] | None = None,
 ) -> RigidTransform:
-    """The rigid transform minimising `sum w ||R src + t - dst||^2` (Kabsch / orthogonal Procrustes).
+    """The rigid transform minimising `sum w ||R src + t - dst||^2` (Kabsch, orthogonal Procrustes).
 
     The rotation comes from the SVD of the weighted cross-covariance and is always proper
     (det +1), also when the points are nearer a reflection than a rotation. This is the library's
@@ -153,7 +153,7 @@ def procrustes_paper(
 
 
 def to_global(cameras: Camera, transform: RigidTransform) -> Camera:
-    """Express cameras calibrated in a local frame in the global frame `Y = R X + T` (paper, §III.B).
+    """Express cameras calibrated in a local frame in the global frame `Y = R X + T` (§III.B).
 
     A camera `x_cam = R_c X + t_c` becomes `x_cam = R_c R^T Y + (t_c - R_c R^T T)`. Batched: one
     transform for the whole rig, or one per camera (leading axes broadcast).
@@ -173,5 +173,13 @@ def to_global(cameras: Camera, transform: RigidTransform) -> Camera:
     inv = transform.inverse()
     R = cameras.R @ inv.R
     t = jnp.einsum("...ij,...j->...i", cameras.R, inv.t) + cameras.t
-    return Camera(cameras.alpha_u, cameras.alpha_v, cameras.u0, cameras.v0, R, t,
-                  skew=cameras.skew, dist=cameras.dist)
+    return Camera(
+        cameras.alpha_u,
+        cameras.alpha_v,
+        cameras.u0,
+        cameras.v0,
+        R,
+        t,
+        skew=cameras.skew,
+        dist=cameras.dist,
+    )

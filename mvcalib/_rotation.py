@@ -1,4 +1,4 @@
-"""Rotations: the nearest rotation to a matrix, with derivatives that exist where R is orthogonal."""
+"""Rotations: the nearest rotation to a matrix, with derivatives that exist at orthogonal R."""
 
 from __future__ import annotations
 

@@ -16,7 +16,6 @@ class Status(enum.IntEnum):
     DEGENERATE = 2
     NON_FINITE = 3
     POINTS_BEHIND = 4
-    MIRRORED = 5
 
     @property
     def message(self) -> str:
@@ -33,9 +32,5 @@ _MESSAGES = {
     Status.NON_FINITE: "NaN or inf among the visible points",
     Status.POINTS_BEHIND: (
         "the visible points lie on both sides of the camera: some correspondences are wrong"
-    ),
-    Status.MIRRORED: (
-        "the solution is a mirrored camera (det K R < 0): check the pixel convention "
-        "(x = column, y = row, y pointing down) or mislabelled points"
     ),
 }

@@ -56,9 +56,9 @@ def boolean_mask(name: str, mask, shape: tuple[int, ...]):
     """A boolean visibility mask that broadcasts to `shape`."""
     if mask is None:
         return jnp.ones(shape, dtype=bool)
-    if isinstance(mask, (list, tuple)):
+    if not hasattr(mask, "dtype"):  # lists, tuples, Python bools
         mask = np.asarray(mask)
-    dtype = np.dtype(getattr(mask, "dtype", np.asarray(mask).dtype))
+    dtype = np.dtype(mask.dtype)
     if dtype != np.bool_:
         raise ValueError(
             f"`{name}` must be a boolean array (True = visible); got dtype {dtype}. "
@@ -69,7 +69,8 @@ def boolean_mask(name: str, mask, shape: tuple[int, ...]):
         np.broadcast_shapes(tuple(mask.shape), shape)
     except ValueError:
         raise ValueError(
-            f"`{name}` of shape {tuple(mask.shape)} does not broadcast to the points' shape {shape}."
+            f"`{name}` of shape {tuple(mask.shape)} does not broadcast to the points' "
+            f"shape {shape}."
         ) from None
     return jnp.broadcast_to(mask, np.broadcast_shapes(tuple(mask.shape), shape))
 

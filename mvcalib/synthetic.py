@@ -68,13 +68,25 @@ def random_cameras(
     `fill` of the image's smaller side.
     """
     target = box_corner() if target is None else target
-    dtype = _default_dtype(dtype)
+    return _random_cameras(
+        key,
+        jnp.asarray(target.points, _default_dtype(dtype)),
+        n_cameras,
+        image_size=tuple(image_size),
+        focal=tuple(focal),
+        max_angle=float(max_angle),
+        fill=tuple(fill),
+    )
+
+
+@eqx.filter_jit
+def _random_cameras(key, pts, n_cameras, *, image_size, focal, max_angle, fill) -> Camera:
+    dtype = pts.dtype
     width, height = image_size
     keys = jax.random.split(key, 8)
     C = n_cameras
     uniform = lambda k, lo, hi, shape=(C,): jax.random.uniform(k, shape, dtype, lo, hi)  # noqa: E731
 
-    pts = jnp.asarray(target.points, dtype)
     centre = pts.mean(0)
     radius = jnp.max(jnp.linalg.norm(pts - centre, axis=-1))
     diag = jnp.ones(3, dtype) / jnp.sqrt(3.0)
@@ -103,8 +115,10 @@ def observe(key, cameras: Camera, world, noise: float, image_size) -> tuple:
     noisy = true + noise * jax.random.normal(key, true.shape, true.dtype)
     width, height = image_size
     inside = (
-        (true[..., 0] >= 0) & (true[..., 0] <= width - 1)
-        & (true[..., 1] >= 0) & (true[..., 1] <= height - 1)
+        (true[..., 0] >= 0)
+        & (true[..., 0] <= width - 1)
+        & (true[..., 1] >= 0)
+        & (true[..., 1] <= height - 1)
     )
     mask = inside & (cameras.depth(world) > 0)
     return true, noisy, mask
@@ -133,14 +147,18 @@ def random_rig(
     ```
     """
     target = box_corner() if target is None else target
-    dtype = _default_dtype(dtype)
     k_cam, k_noise = jax.random.split(key)
     cameras = random_cameras(
         k_cam, n_cameras, target, image_size=image_size, dtype=dtype, **camera_options
     )
-    world = jnp.asarray(target.points, dtype)
-    true, noisy, mask = observe(k_noise, cameras, world, noise, image_size)
-    return SyntheticRig(cameras, world, true, noisy, mask, tuple(image_size))
+    world = jnp.asarray(target.points, cameras.R.dtype)
+    return _observe_rig(k_noise, cameras, world, noise, tuple(image_size))
+
+
+@eqx.filter_jit
+def _observe_rig(key, cameras, world, noise, image_size) -> SyntheticRig:
+    true, noisy, mask = observe(key, cameras, world, noise, image_size)
+    return SyntheticRig(cameras, world, true, noisy, mask, image_size)
 
 
 class PaperScene(eqx.Module):
@@ -160,7 +178,8 @@ class PaperScene(eqx.Module):
     - `pixels`, `pixels_true`, `mask`: observations `(4, 19, 2)` and visibility `(4, 19)`.
     - `calibration_ids`: the 8 dots used for the DLT; `registration_ids`: the 18 measured in both
       frames.
-    - `fixed_point`: a room point (global frame) whose true pixel is (158, 88), as in the paper.
+    - `fixed_point`: a room point (global frame) in the working volume where the target stood,
+      placed on the ray of a whole pixel, so that any estimate within half a pixel rounds to it.
     """
 
     camera: Camera
@@ -171,13 +190,10 @@ class PaperScene(eqx.Module):
     pixels_true: Float[Array, "4 19 2"]
     pixels: Float[Array, "4 19 2"]
     mask: Bool[Array, "4 19"]
-    calibration_ids: np.ndarray = eqx.field(static=True)
-    registration_ids: np.ndarray = eqx.field(static=True)
-    fixed_point: Float[Array, "3"]
+    calibration_ids: tuple[int, ...] = eqx.field(static=True)
+    registration_ids: tuple[int, ...] = eqx.field(static=True)
+    fixed_point: Float[Array, 3]
     image_size: tuple[int, int] = eqx.field(static=True)
-
-
-PAPER_PIXEL = (158.0, 88.0)
 
 
 def paper_scene(
@@ -190,33 +206,50 @@ def paper_scene(
     and global-coordinate measurement noise `global_noise` (in the target's units).
     """
     key = jax.random.key(2010) if key is None else key
-    dtype = _default_dtype(dtype)
     target = box_corner()
+    world = jnp.asarray(target.points, _default_dtype(dtype))
+    return _paper_scene(key, world, tuple(int(i) for i in target.global_ids), noise, global_noise)
+
+
+@eqx.filter_jit
+def _paper_scene(key, world, registration_ids, noise, global_noise) -> PaperScene:
+    dtype = world.dtype
     image_size = (1000, 1100)
     k_views, k_noise, k_global = jax.random.split(key, 3)
     # Four views of the target by one camera: same intrinsics, four poses relative to the target.
-    views = random_cameras(k_views, 4, target, image_size=image_size, dtype=dtype)
+    views = _random_cameras(
+        k_views,
+        world,
+        4,
+        image_size=image_size,
+        focal=(1400.0, 1400.0),
+        max_angle=30.0,
+        fill=(0.45, 0.8),
+    )
     intrinsics = dict(alpha_u=1400.0, alpha_v=1392.0, u0=512.0, v0=541.0)
     local = Camera(R=views.R, t=views.t, **intrinsics)
     # The camera in the room: 2.5 m up and back from the room origin, looking at it.
     R_g, t_g = look_at(
-        jnp.array([-1500.0, -1800.0, 1600.0], dtype), jnp.zeros(3, dtype),
+        jnp.array([-1500.0, -1800.0, 1600.0], dtype),
+        jnp.zeros(3, dtype),
         jnp.array([0.0, 0.0, 1.0], dtype),
     )
     camera = Camera(R=R_g, t=t_g, **intrinsics)
     # local -> global = (global -> camera)^-1 o (local -> camera)
     placements = RigidTransform(R_g, t_g).inverse() @ RigidTransform(local.R, local.t)
 
-    world = jnp.asarray(target.points, dtype)
     true, noisy, mask = observe(k_noise, local, world, noise, image_size)
-    registration_ids = np.asarray(target.global_ids)
-    exact_global = placements.apply(world[registration_ids])
+    exact_global = placements.apply(world[np.asarray(registration_ids)])
     world_global = exact_global + global_noise * jax.random.normal(
         k_global, exact_global.shape, dtype
     )
-    # A fixed room point on the ray of pixel (158, 88), 2.2 m in front of the camera.
-    ray = jnp.linalg.solve(camera.K, jnp.array([*PAPER_PIXEL, 1.0], dtype))
-    fixed_point = RigidTransform(R_g, t_g).inverse().apply((2200.0 * ray / ray[2])[None])[0]
+    # The fixed room point: in the middle of the target's four placements, moved onto the ray of
+    # the nearest whole pixel.
+    middle = placements.apply(world).mean(axis=(0, 1))
+    pixel = jnp.round(camera.project(middle[None])[0])
+    ray = jnp.linalg.solve(camera.K, jnp.array([pixel[0], pixel[1], 1.0], dtype))
+    depth = camera.depth(middle[None])[0]
+    fixed_point = RigidTransform(R_g, t_g).inverse().apply((depth * ray / ray[2])[None])[0]
     return PaperScene(
         camera=camera,
         local_cameras=local,
@@ -226,7 +259,7 @@ def paper_scene(
         pixels_true=true,
         pixels=noisy,
         mask=mask,
-        calibration_ids=np.array([0, 2, 4, 7, 9, 11, 13, 16]),
+        calibration_ids=(0, 2, 4, 7, 9, 11, 13, 16),
         registration_ids=registration_ids,
         fixed_point=fixed_point,
         image_size=image_size,

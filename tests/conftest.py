@@ -1,0 +1,33 @@
+import os
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+DATA = pathlib.Path(
+    os.environ.get(
+        "MVCALIB_DATA", pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+    )
+).resolve()
+
+
+def data_dir(name: str) -> pathlib.Path:
+    path = DATA / name
+    if not path.is_dir():
+        pytest.skip(f"real data set {name!r} not found under MVCALIB_DATA={DATA}")
+    return path
+
+
+def central_difference_check(f, x, *, eps=1e-6, rtol=1e-5, atol=1e-8, seed=0):
+    """Compare jax.jvp of scalar-or-array `f` at `x` along a random direction with central
+    differences (float64)."""
+    rng = np.random.default_rng(seed)
+    v = rng.standard_normal(np.shape(x))
+    _, jvp = jax.jvp(f, (x,), (jax.numpy.asarray(v, x.dtype),))
+    fd = (np.asarray(f(x + eps * v)) - np.asarray(f(x - eps * v))) / (2 * eps)
+    np.testing.assert_allclose(np.asarray(jvp), fd, rtol=rtol, atol=atol)
+    assert np.all(np.isfinite(np.asarray(jvp)))
+    return np.asarray(jvp)

@@ -1,0 +1,156 @@
+import cv2
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import central_difference_check
+
+import mvcalib as mc
+
+
+def random_camera_with_skew(key, n):
+    rig = mc.synthetic.random_rig(key, n_cameras=n)
+    skew = jax.random.uniform(jax.random.fold_in(key, 1), (n,), minval=-5.0, maxval=5.0)
+    return mc.Camera(
+        rig.cameras.alpha_u,
+        rig.cameras.alpha_v,
+        rig.cameras.u0,
+        rig.cameras.v0,
+        rig.cameras.R,
+        rig.cameras.t,
+        skew=skew,
+    ), rig.world
+
+
+def test_project_matches_opencv_with_distortion():
+    rig = mc.synthetic.random_rig(jax.random.key(3), n_cameras=3)
+    dist = jnp.array([[-0.2, 0.1, 1e-3, -1e-3, 0.01], [0.05, 0, 0, 0, 0], [0, 0, 0, 2e-3, 0]])
+    cams = mc.Camera(
+        rig.cameras.alpha_u,
+        rig.cameras.alpha_v,
+        rig.cameras.u0,
+        rig.cameras.v0,
+        rig.cameras.R,
+        rig.cameras.t,
+        dist=dist,
+    )
+    ours = np.asarray(cams.project(rig.world))
+    for i in range(3):
+        rvec, _ = cv2.Rodrigues(np.asarray(cams.R[i]))
+        ref, _ = cv2.projectPoints(
+            np.asarray(rig.world),
+            rvec,
+            np.asarray(cams.t[i]),
+            np.asarray(cams.K[i]),
+            np.asarray(cams.dist[i]),
+        )
+        np.testing.assert_allclose(ours[i], ref[:, 0], atol=1e-9)
+
+
+def test_projection_matrix_projects_like_project():
+    cams, world = random_camera_with_skew(jax.random.key(0), 5)
+    P = cams.projection_matrix()
+    Xh = jnp.concatenate([world, jnp.ones((len(world), 1))], -1)
+    x = jnp.einsum("cij,nj->cni", P, Xh)
+    np.testing.assert_allclose(x[..., :2] / x[..., 2:], cams.project(world), atol=1e-9)
+
+
+def test_center_has_zero_depth_and_is_where_the_rays_meet():
+    cams, _ = random_camera_with_skew(jax.random.key(1), 4)
+    c = cams.center
+    np.testing.assert_allclose(cams.to_camera(c[:, None])[:, 0], 0.0, atol=1e-9)
+    Ph = cams.projection_matrix() @ jnp.concatenate([c, jnp.ones((4, 1))], -1)[..., None]
+    np.testing.assert_allclose(Ph, 0.0, atol=1e-6)
+
+
+def test_from_projection_recovers_100_noise_free_cameras():
+    cams, _ = random_camera_with_skew(jax.random.key(2), 100)
+    scale = jax.random.uniform(jax.random.key(9), (100, 1, 1), minval=-3.0, maxval=3.0)
+    back = mc.Camera.from_projection(scale * cams.projection_matrix())
+    for name in ("alpha_u", "alpha_v", "u0", "v0"):
+        np.testing.assert_allclose(getattr(back, name), getattr(cams, name), rtol=1e-10)
+    np.testing.assert_allclose(back.skew, cams.skew, atol=1e-8)
+    np.testing.assert_allclose(back.R, cams.R, atol=1e-12)
+    np.testing.assert_allclose(back.t, cams.t, rtol=1e-10)
+
+
+def test_paper_decomposition_equals_general_one_without_skew():
+    rig = mc.synthetic.random_rig(jax.random.key(4), n_cameras=10)
+    P = rig.cameras.projection_matrix()
+    a, b = mc.Camera.from_projection(P), mc.Camera.from_projection(P, skew=False)
+    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(leaf_a, leaf_b, rtol=1e-10, atol=1e-10)
+
+
+def test_paper_decomposition_reorthogonalises_r_when_data_has_skew():
+    cams, _ = random_camera_with_skew(jax.random.key(5), 10)
+    paper = mc.Camera.from_projection(cams.projection_matrix(), skew=False)
+    RtR = jnp.swapaxes(paper.R, -1, -2) @ paper.R
+    np.testing.assert_allclose(RtR, np.broadcast_to(np.eye(3), RtR.shape), atol=1e-12)
+    np.testing.assert_allclose(jnp.linalg.det(paper.R), 1.0, atol=1e-12)
+
+
+def test_decomposition_agrees_with_opencv():
+    rig = mc.synthetic.random_rig(jax.random.key(6), n_cameras=20, noise=0.5)
+    P = np.asarray(mc.dlt(rig.world, rig.pixels))  # estimated P: carries some skew
+    cams = mc.Camera.from_projection(P)
+    for i in range(20):
+        K, R, C = cv2.decomposeProjectionMatrix(P[i])[:3]
+        K = K / K[2, 2]
+        np.testing.assert_allclose(np.asarray(cams.K[i]), K, rtol=1e-6, atol=1e-6 * K[0, 0])
+        np.testing.assert_allclose(np.asarray(cams.R[i]), R, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(cams.center[i]), C[:3, 0] / C[3, 0], rtol=1e-6)
+
+
+def test_from_projection_gradient_matches_finite_differences():
+    cams, _ = random_camera_with_skew(jax.random.key(7), 1)
+    P = cams[0].projection_matrix()
+
+    def f(P):
+        c = mc.Camera.from_projection(P)
+        return jnp.concatenate([c.K.ravel(), c.R.ravel(), c.t])
+
+    central_difference_check(f, P, eps=1e-7, rtol=1e-4, atol=1e-6)
+
+
+def test_project_gradient_in_points_and_parameters():
+    cams, world = random_camera_with_skew(jax.random.key(8), 1)
+    cam = cams[0]
+    central_difference_check(lambda X: cam.project(X), world, eps=1e-5, rtol=1e-6)
+    flat, unravel = jax.flatten_util.ravel_pytree(cam)
+    central_difference_check(
+        lambda p: unravel(p).project(world), flat, eps=1e-6, rtol=1e-5, atol=1e-6
+    )
+
+
+def test_rig_indexing_and_shapes():
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=6)
+    cams = rig.cameras
+    assert len(cams) == 6 and cams.batch_shape == (6,)
+    assert cams[2].batch_shape == () and cams[1:4].batch_shape == (3,)
+    np.testing.assert_allclose(cams[2].project(rig.world), cams.project(rig.world)[2])
+    assert cams.project(rig.world).shape == (6, 19, 2)
+    assert cams.project(jnp.broadcast_to(rig.world, (6, 19, 3))).shape == (6, 19, 2)
+    with pytest.raises(TypeError):
+        len(cams[0])
+
+
+def test_camera_is_a_pytree_for_jit_and_vmap():
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3)
+    projected = jax.vmap(lambda c: c.project(rig.world))(rig.cameras)
+    np.testing.assert_allclose(projected, rig.cameras.project(rig.world))
+    np.testing.assert_allclose(jax.jit(lambda c: c.K)(rig.cameras), rig.cameras.K)
+
+
+def test_tsai_conversion_round_trip_and_paper_centre():
+    np.testing.assert_allclose(
+        mc.image_to_pixel([0.0, 0.0], (0.01, 0.01), image_size=(1000, 1100)), [500.0, 550.0]
+    )
+    xy = jnp.array([[1.25, -0.5], [-3.0, 2.0]])
+    px = mc.image_to_pixel(xy, (0.005, 0.006), center=(320.0, 240.0), sx=1.1)
+    np.testing.assert_allclose(px[0], [320 + 1.1 * 1.25 / 0.005, 240 - 0.5 / 0.006])
+    back = mc.pixel_to_image(px, (0.005, 0.006), center=(320.0, 240.0), sx=1.1)
+    np.testing.assert_allclose(back, xy, atol=1e-12)
+    with pytest.raises(ValueError, match="exactly one"):
+        mc.image_to_pixel(xy, (0.01, 0.01))

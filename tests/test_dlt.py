@@ -1,0 +1,158 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import central_difference_check
+
+import mvcalib as mc
+
+
+def numpy_dlt(world, pixels):
+    """Independent reference: Hartley-normalised DLT in plain NumPy (mean-distance scaling)."""
+
+    def similarity(x):
+        c = x.mean(0)
+        s = np.sqrt(x.shape[1]) / np.linalg.norm(x - c, axis=1).mean()
+        T = np.eye(x.shape[1] + 1) * s
+        T[:-1, -1], T[-1, -1] = -s * c, 1.0
+        return T
+
+    T3, T2 = similarity(world), similarity(pixels)
+    Xn = np.c_[world, np.ones(len(world))] @ T3.T
+    xn = np.c_[pixels, np.ones(len(pixels))] @ T2.T
+    rows = []
+    for X, (u, v, _) in zip(Xn, xn):
+        rows.append(np.r_[X, np.zeros(4), -u * X])
+        rows.append(np.r_[np.zeros(4), X, -v * X])
+    P = np.linalg.inv(T2) @ np.linalg.svd(np.array(rows))[2][-1].reshape(3, 4) @ T3
+    P = P / np.linalg.norm(P[2, :3])
+    return P if np.sum(np.c_[world, np.ones(len(world))] @ P[2]) > 0 else -P
+
+
+def relative_error(a, b):
+    return np.abs(np.asarray(a) - np.asarray(b)) / np.maximum(np.abs(np.asarray(b)), 1e-300)
+
+
+def test_noise_free_recovers_k_r_t_of_100_cameras():
+    rig = mc.synthetic.random_rig(jax.random.key(10), n_cameras=100)
+    cams = mc.Camera.from_projection(mc.dlt(rig.world, rig.pixels_true))
+    for name in ("alpha_u", "alpha_v", "u0", "v0"):
+        assert relative_error(getattr(cams, name), getattr(rig.cameras, name)).max() < 1e-8
+    assert np.abs(np.asarray(cams.skew)).max() < 1e-8 * 1000  # |skew| relative to focal scale
+    assert np.abs(np.asarray(cams.R - rig.cameras.R)).max() < 1e-8
+    assert relative_error(cams.t, rig.cameras.t).max() < 1e-8
+
+
+def test_median_focal_error_below_one_percent_at_half_pixel_noise():
+    rig = mc.synthetic.random_rig(jax.random.key(11), n_cameras=500, noise=0.5)
+    cams = mc.Camera.from_projection(mc.dlt(rig.world, rig.pixels))
+    err = relative_error(cams.alpha_u, rig.cameras.alpha_u)
+    assert np.median(err) < 0.01
+    # and the error is noise, not bias: the DLT is not far from the truth on average
+    assert abs(np.median(np.asarray(cams.alpha_u / rig.cameras.alpha_u)) - 1) < 0.005
+
+
+def test_agrees_with_independent_numpy_dlt():
+    rig = mc.synthetic.random_rig(jax.random.key(12), n_cameras=8, noise=0.3)
+    ours = np.asarray(mc.dlt(rig.world, rig.pixels))
+    for i in range(8):
+        ref = numpy_dlt(np.asarray(rig.world), np.asarray(rig.pixels[i]))
+        # Mean- and RMS-distance normalisation give slightly different least-squares weights:
+        # compare what matters, the reprojection, to well below the noise.
+        cams = mc.Camera.from_projection(jnp.stack([ours[i], ref]))
+        proj = cams.project(rig.world)
+        assert np.abs(np.asarray(proj[0] - proj[1])).max() < 0.02
+        np.testing.assert_allclose(ours[i], ref, rtol=0.05, atol=1e-3 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("C", [1, 7, 64, 4096])
+def test_batched_call_equals_per_camera_calls(C):
+    rig = mc.synthetic.random_rig(jax.random.key(C), n_cameras=C, noise=0.3)
+    P = mc.dlt(rig.world, rig.pixels, rig.mask)
+    assert P.shape == (C, 3, 4)
+    idx = np.random.default_rng(C).choice(C, size=min(C, 12), replace=False)
+    for i in idx:
+        single = mc.dlt(rig.world, rig.pixels[i], rig.mask[i])
+        np.testing.assert_allclose(P[i], single, rtol=1e-10, atol=1e-10 * np.abs(single).max())
+
+
+def test_any_leading_axes_and_broadcast_world():
+    rig = mc.synthetic.random_rig(jax.random.key(13), n_cameras=6, noise=0.3)
+    P = mc.dlt(rig.world, rig.pixels)
+    P2 = mc.dlt(jnp.broadcast_to(rig.world, (2, 3, 19, 3)), rig.pixels.reshape(2, 3, 19, 2))
+    assert P2.shape == (2, 3, 3, 4)
+    np.testing.assert_allclose(P2.reshape(6, 3, 4), P, rtol=1e-10, atol=1e-12)
+
+
+def test_masked_points_have_no_influence():
+    rig = mc.synthetic.random_rig(jax.random.key(14), n_cameras=5, noise=0.3)
+    mask = np.asarray(rig.mask).copy()
+    mask[:, [1, 5, 11]] = False
+    mask[2, 14] = False
+    P = mc.dlt(rig.world, rig.pixels, mask)
+    # wild values, even NaN and inf, in the hidden entries change nothing, bit for bit
+    pixels = np.asarray(rig.pixels).copy()
+    pixels[~mask] = np.array([1e7, np.nan])
+    world = np.broadcast_to(np.asarray(rig.world), (5, 19, 3)).copy()
+    world[~mask] = np.inf
+    np.testing.assert_array_equal(mc.dlt(world, pixels, mask), P)
+    # and the result is the DLT of the visible points alone
+    keep = mask[2]
+    np.testing.assert_allclose(
+        mc.dlt(rig.world[keep], rig.pixels[2][keep]), P[2], rtol=1e-10, atol=1e-12
+    )
+
+
+def test_masked_points_get_zero_gradient():
+    rig = mc.synthetic.random_rig(jax.random.key(15), n_cameras=1, noise=0.3)
+    mask = np.ones(19, bool)
+    mask[[3, 8]] = False
+    g = jax.grad(lambda px: jnp.sum(mc.dlt(rig.world, px, mask) ** 2))(rig.pixels[0])
+    assert np.all(np.asarray(g)[~mask] == 0) and np.all(np.isfinite(np.asarray(g)))
+    assert np.abs(np.asarray(g)[mask]).max() > 0
+
+
+def test_normalisation_scale_and_sign():
+    rig = mc.synthetic.random_rig(jax.random.key(16), n_cameras=10, noise=0.3)
+    P = mc.dlt(rig.world, rig.pixels)
+    np.testing.assert_allclose(jnp.linalg.norm(P[:, 2, :3], axis=-1), 1.0, rtol=1e-12)
+    depth = jnp.einsum("cj,nj->cn", P[:, 2, :3], rig.world) + P[:, 2, 3:]
+    assert bool(jnp.all(depth > 0))
+
+
+def test_dlt_gradient_matches_finite_differences_noise_free_and_noisy():
+    for noise in (0.0, 0.3):
+        rig = mc.synthetic.random_rig(jax.random.key(17), n_cameras=1, noise=noise)
+        world, pixels = rig.world, rig.pixels[0]
+        check = dict(eps=1e-6, rtol=1e-5, atol=1e-9)
+        central_difference_check(lambda px, w=world: mc.dlt(w, px), pixels, **check)
+        central_difference_check(lambda X, px=pixels: mc.dlt(X, px), world, **check)
+
+
+def test_dlt_works_under_user_jit_and_grad():
+    rig = mc.synthetic.random_rig(jax.random.key(18), n_cameras=3, noise=0.3)
+    f = jax.jit(lambda px: mc.dlt(rig.world, px, rig.mask))
+    np.testing.assert_allclose(f(rig.pixels), mc.dlt(rig.world, rig.pixels, rig.mask))
+    loss = lambda px: jnp.sum(mc.calibrate(rig.world, px, rig.mask).cameras.alpha_u)  # noqa: E731
+    assert np.all(np.isfinite(np.asarray(jax.grad(loss)(rig.pixels))))
+
+
+def test_float32_rms_within_twice_float64_on_the_demo_rig():
+    rms = {}
+    for dtype in (jnp.float64, jnp.float32):
+        scene = mc.synthetic.paper_scene(noise=0.3, dtype=dtype)
+        result = mc.calibrate(scene.world, scene.pixels, scene.mask)
+        assert result.cameras.alpha_u.dtype == dtype
+        true = mc.reprojection_report(scene.local_cameras, scene.world, scene.pixels, scene.mask)
+        rms[dtype] = np.asarray(result.report.rms)
+        assert np.all(np.asarray(result.ok))
+        # both are fits to the same noisy pixels: below the true cameras' RMS
+        assert np.all(rms[dtype] <= np.asarray(true.rms) * 1.001)
+    assert np.all(rms[jnp.float32] <= 2 * rms[jnp.float64])
+    # and the float32 path also works on a rig of many realistic cameras
+    rig32 = mc.synthetic.random_rig(jax.random.key(19), n_cameras=200, noise=0.3, dtype=jnp.float32)
+    rig64 = mc.synthetic.random_rig(jax.random.key(19), n_cameras=200, noise=0.3)
+    r32 = mc.calibrate(rig32.world, rig32.pixels).report.rms
+    r64 = mc.calibrate(rig64.world, rig64.pixels).report.rms
+    assert np.median(np.asarray(r32) / np.asarray(r64)) < 1.05
+    assert np.all(np.asarray(r32) < 2 * np.asarray(r64))

@@ -1,0 +1,22 @@
+import pathlib
+import re
+import subprocess
+import sys
+
+README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_python_example_runs_and_prints_what_it_says():
+    code = re.search(r"```python\n(.*?)```", README.read_text(), re.S).group(1)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    first = out.stdout.splitlines()[0].split()
+    assert first[0] == "True" and abs(float(first[1]) - 0.357) < 0.001
+    assert "(1000, 3)" in out.stdout
+
+
+def test_ci_runs_exactly_the_readme_test_command():
+    text = README.read_text()
+    command = re.search(r"# install and run the tests.*\n(.*)\n", text).group(1)
+    ci = (README.parent / ".ci" / "run").read_text()
+    assert command.strip() in ci

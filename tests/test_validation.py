@@ -1,0 +1,99 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mvcalib as mc
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return mc.synthetic.random_rig(jax.random.key(40), n_cameras=2, noise=0.3)
+
+
+@pytest.mark.parametrize("fn", [mc.dlt, mc.calibrate])
+def test_mismatched_point_counts(rig, fn):
+    with pytest.raises(ValueError, match="19 points but `pixels` has 18"):
+        fn(rig.world, rig.pixels[:, :18])
+
+
+def test_wrong_trailing_shapes(rig):
+    with pytest.raises(ValueError, match=r"`world` must have shape \(\.\.\., N, 3\)"):
+        mc.dlt(rig.world[:, :2], rig.pixels)
+    with pytest.raises(ValueError, match=r"`pixels` must have shape \(\.\.\., N, 2\)"):
+        mc.dlt(rig.world, jnp.concatenate([rig.pixels, rig.pixels[..., :1]], -1))
+
+
+def test_non_broadcasting_camera_axes(rig):
+    with pytest.raises(ValueError, match="do not broadcast"):
+        mc.dlt(jnp.broadcast_to(rig.world, (3, 19, 3)), rig.pixels)
+
+
+def test_fewer_than_six_points(rig):
+    with pytest.raises(ValueError, match="at least 6 points"):
+        mc.calibrate(rig.world[:5], rig.pixels[:, :5])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_visible_entries(rig, bad):
+    pixels = np.array(rig.pixels)
+    pixels[1, 7, 1] = bad
+    with pytest.raises(ValueError, match=r"`pixels` has 1 non-finite .* index \(1, 7\)"):
+        mc.dlt(rig.world, pixels)
+    mask = np.ones((2, 19), bool)
+    mask[1, 7] = False
+    assert np.all(np.isfinite(np.asarray(mc.dlt(rig.world, pixels, mask))))
+
+
+@pytest.mark.parametrize("dtype", [np.complex128, np.bool_, np.float16, object])
+def test_wrong_dtypes(rig, dtype):
+    with pytest.raises(ValueError, match="`pixels`"):
+        mc.dlt(rig.world, np.asarray(rig.pixels).astype(dtype))
+
+
+def test_strings_are_refused(rig):
+    with pytest.raises(ValueError, match="`world`"):
+        mc.dlt(np.asarray(rig.world).astype(str), rig.pixels)
+
+
+def test_lists_and_integers_are_accepted(rig):
+    world = np.asarray(rig.world)
+    pixels = np.rint(np.asarray(rig.pixels[0])).astype(int)
+    P = mc.dlt(world.tolist(), pixels.tolist())
+    np.testing.assert_allclose(P, mc.dlt(world, pixels.astype(float)), rtol=1e-12, atol=1e-15)
+
+
+def test_mask_dtype_and_shape(rig):
+    with pytest.raises(ValueError, match="boolean"):
+        mc.dlt(rig.world, rig.pixels, np.ones((2, 19), int))
+    with pytest.raises(ValueError, match="does not broadcast"):
+        mc.dlt(rig.world, rig.pixels, np.ones((2, 18), bool))
+
+
+def test_ragged_lists():
+    with pytest.raises(ValueError, match="rectangular"):
+        mc.dlt([[0, 0, 0], [1, 2]] * 4, [[0, 0]] * 8)
+
+
+def test_procrustes_inputs():
+    with pytest.raises(ValueError, match="same points"):
+        mc.procrustes(np.zeros((4, 3)), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="at least 3"):
+        mc.procrustes(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="non-negative"):
+        mc.procrustes(np.eye(3), np.eye(3), weights=np.array([1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match="NaN"):
+        mc.procrustes(np.eye(3), np.full((3, 3), np.nan))
+
+
+def test_validation_accepts_tracers(rig):
+    # shape checks are static, value checks are skipped: grad and jit go through the boundary
+    g = jax.grad(lambda px: jnp.sum(mc.dlt(rig.world, px, rig.mask)[..., 0, 0]))(rig.pixels)
+    assert np.all(np.isfinite(np.asarray(g)))
+    with pytest.raises(ValueError, match="at least 6 points"):
+        jax.jit(lambda px: mc.dlt(rig.world[:5], px))(rig.pixels[:, :5])
+
+
+def test_camera_dist_shape():
+    with pytest.raises(ValueError, match=r"\(k1, k2, p1, p2, k3\)"):
+        mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), dist=np.zeros(4))
