@@ -239,6 +239,15 @@ def distort(xy, dist):
     """Brown–Conrady distortion of normalised coordinates `(..., 2)`, OpenCV's model and order.
 
     `dist = (k1, k2, p1, p2, k3)`, broadcast against `xy[..., 0]`.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> mc.distort(jnp.array([0.5, 0.0]), jnp.array([-0.25, 0.0, 0.0, 0.0, 0.0])).tolist()
+    [0.46875, 0.0]
+
+    ```
     """
     x, y = xy[..., 0], xy[..., 1]
     k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))

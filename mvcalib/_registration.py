@@ -141,6 +141,17 @@ def procrustes_paper(
     `R` is a general 3 x 3 matrix, not constrained to be a rotation, and `T` trusts point 1
     exactly, so under measurement noise `R` is not orthogonal and the residual is larger than
     `procrustes`'s. Kept for comparison with the paper.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> src = jnp.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
+    >>> T = mc.procrustes_paper(src, src + 2.0)
+    >>> T.R.round(6).tolist() == jnp.eye(3).tolist(), T.t.round(6).tolist()
+    (True, [2.0, 2.0, 2.0])
+
+    ```
     """
     src = _validate.floating("src", src, (None, 3))
     dst = _validate.floating("dst", dst, (None, 3))

@@ -57,12 +57,32 @@ def nearest_rotation(H):
     For a nearly orthogonal `H` this is the re-orthogonalisation `R = U V^T` of the paper; for a
     cross-covariance `H = sum w (y - ȳ)(x - x̄)^T` it is the Kabsch rotation. Batched over leading
     axes; its derivative is defined wherever the answer is unique (also at orthogonal `H`).
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> R = mc.nearest_rotation(jnp.array([[2.0, 0.1, 0], [0, 1.0, 0], [0, 0, -1.0]]))
+    >>> round(float(jnp.linalg.det(R)), 6), bool(jnp.allclose(R.T @ R, jnp.eye(3), atol=1e-6))
+    (1.0, True)
+
+    ```
     """
     return jnp.vectorize(_nearest_rotation, signature="(3,3)->(3,3)")(H)
 
 
 def rodrigues(rvec):
-    """Rotation matrix of an axis-angle vector (OpenCV's Rodrigues), gradient-safe at zero."""
+    """Rotation matrix of an axis-angle vector (OpenCV's Rodrigues), gradient-safe at zero.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> (mc.rodrigues(jnp.array([0.0, 0.0, jnp.pi / 2])) @ jnp.array([1.0, 0, 0])).round(6).tolist()
+    [0.0, 1.0, 0.0]
+
+    ```
+    """
     theta2 = jnp.sum(rvec * rvec, axis=-1)
     small = theta2 < 1e-12
     safe2 = jnp.where(small, 1.0, theta2)

@@ -204,6 +204,16 @@ def paper_scene(
     1000 x 1100 images (width x height), the 19-dot box-corner target, 8 dots per snapshot for
     calibration (spread over the three faces), 18 for registration, Gaussian pixel noise `noise`
     and global-coordinate measurement noise `global_noise` (in the target's units).
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> scene = mc.synthetic.paper_scene(noise=0.0)
+    >>> scene.pixels.shape, len(scene.calibration_ids), scene.world_global.shape
+    ((4, 19, 2), 8, (4, 18, 3))
+
+    ```
     """
     key = jax.random.key(2010) if key is None else key
     target = box_corner()

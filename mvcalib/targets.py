@@ -51,6 +51,16 @@ def box_corner(size: float = 200.0) -> Target:
     frames as in the paper) and the corner itself is dot 18. Seen from anywhere in the positive
     octant all three faces are visible, and the dots lie on three planes, far from coplanar, so
     eight dots spread over the faces already determine a camera.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> target = mc.targets.box_corner()
+    >>> target.points.shape, target.global_points.shape
+    ((19, 3), (18, 3))
+
+    ```
     """
     a, b, c = 0.2 * size, 0.5 * size, 0.8 * size
     rows, cols = (a, 0.6 * size), (a, b, c)
