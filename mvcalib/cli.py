@@ -1,11 +1,17 @@
 """Command line: `mvcalib demo` (also `python -m mvcalib demo`).
 
 Exit codes: 0 success, 1 the work failed (e.g. a camera could not be calibrated), 2 bad usage.
+
+The CLI keeps JAX's persistent compilation cache in `$XDG_CACHE_HOME/mvcalib/jax` (default
+`~/.cache/mvcalib/jax`), so that only the first run pays for compiling; set
+`MVCALIB_COMPILATION_CACHE=0` to turn it off, or to a directory to put it elsewhere.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import pathlib
 import sys
 
 EXAMPLES = """examples:
@@ -51,6 +57,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _enable_compilation_cache(jax) -> None:
+    setting = os.environ.get("MVCALIB_COMPILATION_CACHE", "")
+    if setting == "0":
+        return
+    if setting:
+        path = pathlib.Path(setting)
+    else:
+        cache = pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache"))
+        path = cache / "mvcalib" / "jax"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:  # a read-only home: run without the cache rather than fail
+        return
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -60,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    _enable_compilation_cache(jax)
     if args.command == "demo":
         from . import demo
 

@@ -60,3 +60,18 @@ def test_bad_usage_exits_2_with_one_line():
 def test_help_has_examples():
     result = run("--help")
     assert result.returncode == 0 and "examples:" in result.stdout and "demo" in result.stdout
+
+
+def test_compilation_cache_goes_where_asked(tmp_path, monkeypatch):
+    monkeypatch.setenv("MVCALIB_COMPILATION_CACHE", str(tmp_path / "cache"))
+    result = run("demo", "--noise-free")
+    assert result.returncode == 0, result.stderr
+    assert any((tmp_path / "cache").iterdir())
+
+
+def test_measured_global_coordinates_show_the_papers_r_is_not_a_rotation():
+    result = run("demo", "--global-noise", "0.5")
+    assert result.returncode == 0, result.stderr
+    paper = re.search(r"paper eqs\. 25-28 .* max \|R\^T R - I\| = ([\d.e+-]+)", result.stdout)
+    ours = re.search(r"Procrustes \(default\) .* max \|R\^T R - I\| = ([\d.e+-]+)", result.stdout)
+    assert float(paper.group(1)) > 1e-3 and float(ours.group(1)) < 1e-12
