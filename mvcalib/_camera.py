@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -187,10 +189,14 @@ class Camera(eqx.Module):
         ```
         """
         P = _validate.floating("P", P, (3, 4))
-        kernel = _decompose_skew if skew else _decompose_paper
-        parts = jnp.vectorize(kernel, signature="(3,4)->(),(),(),(),(),(3,3),(3)")(P)
-        alpha_u, alpha_v, u0, v0, s, R, t = parts
+        alpha_u, alpha_v, u0, v0, s, R, t = _decompose(P, skew=skew)
         return cls(alpha_u=alpha_u, alpha_v=alpha_v, u0=u0, v0=v0, skew=s, R=R, t=t)
+
+
+@functools.partial(jax.jit, static_argnames="skew")
+def _decompose(P, skew: bool):
+    kernel = _decompose_skew if skew else _decompose_paper
+    return jnp.vectorize(kernel, signature="(3,4)->(),(),(),(),(),(3,3),(3)")(P)
 
 
 def _normalise_projection(P):

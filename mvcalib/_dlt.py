@@ -108,7 +108,8 @@ def _dlt_kernel(world, pixels, mask, rcond):
 
 
 @functools.partial(jax.jit, static_argnames="rcond")
-def _dlt_batched(world, pixels, mask, rcond):
+def solve_validated(world, pixels, mask, rcond):
+    """The DLT of every camera for inputs that passed `_validate.correspondences`."""
     kernel = functools.partial(_dlt_kernel, rcond=rcond)
     return jnp.vectorize(kernel, signature="(n,3),(n,2),(n)->(3,4),(),(),()")(world, pixels, mask)
 
@@ -122,7 +123,7 @@ def solve(world, pixels, mask=None, *, rcond: float | None = None):
     """Validated DLT returning `(P, status, condition, mirrored)`; see `dlt`."""
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
     rcond = default_rcond(world.dtype) if rcond is None else float(rcond)
-    return _dlt_batched(world, pixels, mask, rcond)
+    return solve_validated(world, pixels, mask, rcond)
 
 
 def dlt(

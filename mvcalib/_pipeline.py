@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
@@ -102,12 +105,19 @@ def calibrate(
     ```
     """
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
-    P, status, condition, mirrored = _dlt.solve(world, pixels, mask, rcond=rcond)
-    cameras = Camera.from_projection(P, skew=skew)
-    report = compute_report(cameras, world, pixels, mask)
-    result = Calibration(
-        cameras=cameras, P=P, report=report, status=status, condition=condition, mirrored=mirrored
-    )
-    if strict and _validate.is_concrete(status):
+    rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
+    result = _calibrate(world, pixels, mask, skew=skew, rcond=rcond)
+    if strict and _validate.is_concrete(result.status):
         result.raise_if_failed()
     return result
+
+
+@functools.partial(jax.jit, static_argnames=("skew", "rcond"))
+def _calibrate(world, pixels, mask, skew: bool, rcond: float) -> Calibration:
+    """DLT, decomposition and report for validated inputs, compiled into one computation."""
+    P, status, condition, mirrored = _dlt.solve_validated(world, pixels, mask, rcond)
+    cameras = Camera.from_projection(P, skew=skew)
+    report = compute_report(cameras, world, pixels, mask)
+    return Calibration(
+        cameras=cameras, P=P, report=report, status=status, condition=condition, mirrored=mirrored
+    )
