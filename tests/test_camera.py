@@ -1,4 +1,5 @@
 import cv2
+import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
@@ -12,29 +13,13 @@ import mvcalib as mc
 def random_camera_with_skew(key, n):
     rig = mc.synthetic.random_rig(key, n_cameras=n)
     skew = jax.random.uniform(jax.random.fold_in(key, 1), (n,), minval=-5.0, maxval=5.0)
-    return mc.Camera(
-        rig.cameras.alpha_u,
-        rig.cameras.alpha_v,
-        rig.cameras.u0,
-        rig.cameras.v0,
-        rig.cameras.R,
-        rig.cameras.t,
-        skew=skew,
-    ), rig.world
+    return eqx.tree_at(lambda c: c.skew, rig.cameras, skew), rig.world
 
 
 def test_project_matches_opencv_with_distortion():
     rig = mc.synthetic.random_rig(jax.random.key(3), n_cameras=3)
     dist = jnp.array([[-0.2, 0.1, 1e-3, -1e-3, 0.01], [0.05, 0, 0, 0, 0], [0, 0, 0, 2e-3, 0]])
-    cams = mc.Camera(
-        rig.cameras.alpha_u,
-        rig.cameras.alpha_v,
-        rig.cameras.u0,
-        rig.cameras.v0,
-        rig.cameras.R,
-        rig.cameras.t,
-        dist=dist,
-    )
+    cams = eqx.tree_at(lambda c: c.dist, rig.cameras, dist)
     ours = np.asarray(cams.project(rig.world))
     for i in range(3):
         rvec, _ = cv2.Rodrigues(np.asarray(cams.R[i]))
