@@ -5,40 +5,23 @@ The public API is what this module re-exports; everything else is private.
 
 from . import synthetic as synthetic
 from . import targets as targets
-from ._camera import (
-    Camera as Camera,
-)
-from ._camera import (
-    distort as distort,
-)
-from ._camera import (
-    image_to_pixel as image_to_pixel,
-)
-from ._camera import (
-    pixel_to_image as pixel_to_image,
-)
+from ._camera import Camera as Camera
+from ._camera import distort as distort
+from ._camera import image_to_pixel as image_to_pixel
+from ._camera import pixel_to_image as pixel_to_image
+from ._camera import undistort_points as undistort_points
 from ._dlt import dlt as dlt
-from ._pipeline import (
-    Calibration as Calibration,
-)
-from ._pipeline import (
-    CalibrationError as CalibrationError,
-)
-from ._pipeline import (
-    calibrate as calibrate,
-)
-from ._registration import (
-    RigidTransform as RigidTransform,
-)
-from ._registration import (
-    procrustes as procrustes,
-)
-from ._registration import (
-    procrustes_paper as procrustes_paper,
-)
-from ._registration import (
-    to_global as to_global,
-)
+from ._pipeline import Calibration as Calibration
+from ._pipeline import CalibrationError as CalibrationError
+from ._pipeline import calibrate as calibrate
+from ._refine import Cauchy as Cauchy
+from ._refine import Huber as Huber
+from ._refine import Refinement as Refinement
+from ._refine import refine as refine
+from ._registration import RigidTransform as RigidTransform
+from ._registration import procrustes as procrustes
+from ._registration import procrustes_paper as procrustes_paper
+from ._registration import to_global as to_global
 from ._report import ReprojectionReport as ReprojectionReport
 from ._report import reprojection_report as reprojection_report
 from ._rotation import nearest_rotation as nearest_rotation

@@ -264,6 +264,48 @@ def distort(xy, dist):
     return jnp.stack([xd, yd], -1)
 
 
+def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
+    """Remove `camera`'s lens distortion from observed pixels (the inverse of `distort`).
+
+    Returns the pixels an ideal pinhole camera with the same `K` would have seen, like
+    `cv2.undistortPoints(pixels, K, dist, P=K)`. Solved per point by Newton's method on the
+    2 x 2 distortion Jacobian, starting from the distorted point, for a fixed number of
+    iterations (static shapes, differentiable); `pixels` is `(..., N, 2)` and broadcasts
+    against the camera's batch shape.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> cam = mc.Camera(800.0, 800.0, 320.0, 240.0, jnp.eye(3), jnp.array([0.0, 0.0, 4.0]),
+    ...                 dist=jnp.array([-0.2, 0.05, 0.0, 0.0, 0.0]))
+    >>> world = jnp.array([[1.0, 0.5, 0.0]])
+    >>> mc.undistort_points(cam, cam.project(world)).round(3).tolist()
+    [[520.0, 340.0]]
+
+    ```
+    """
+    px = _validate.floating("pixels", pixels, (None, 2))
+    dist = camera.dist[..., None, :]
+    # normalised distorted coordinates: invert K (upper triangular)
+    yd = (px[..., 1] - camera.v0[..., None]) / camera.alpha_v[..., None]
+    xd = (px[..., 0] - camera.u0[..., None] - camera.skew[..., None] * yd) / camera.alpha_u[
+        ..., None
+    ]
+    target = jnp.stack([xd, yd], -1)
+    dist = jnp.broadcast_to(dist, (*target.shape[:-1], 5))
+
+    def newton(xy, _):
+        jac = jax.vmap(jax.jacfwd(distort))(xy.reshape(-1, 2), dist.reshape(-1, 5))
+        step = jnp.linalg.solve(jac, (distort(xy, dist) - target).reshape(-1, 2, 1))
+        return xy - step.reshape(xy.shape), None
+
+    xy, _ = jax.lax.scan(newton, target, None, length=iterations)
+    u = camera.alpha_u[..., None] * xy[..., 0] + camera.skew[..., None] * xy[..., 1]
+    v = camera.alpha_v[..., None] * xy[..., 1] + camera.v0[..., None]
+    return jnp.stack([u + camera.u0[..., None], v], -1)
+
+
 def image_to_pixel(image_xy, pixel_size, *, image_size=None, center=None, sx: float = 1.0):
     """Tsai's conversion from image-plane coordinates to pixels (the paper's Section IV.2).
 

@@ -6,10 +6,11 @@ import functools
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _dlt, _validate
+from . import _dlt, _refine, _validate
 from ._camera import Camera
 from ._report import ReprojectionReport, compute_report, format_table
 from ._status import Status
@@ -32,6 +33,8 @@ class Calibration(eqx.Module):
       the points in front): left-handed world coordinates, as in the Oxford VGG data, or pixels
       with y pointing up. `P` is right either way; `cameras` then has a proper rotation and
       the points at negative depth, and still projects every point correctly.
+    - `refinement`: with `calibrate(..., refine=...)`, the `mvcalib.Refinement` whose cameras and
+      report replaced the closed-form ones (`P` stays the DLT's); otherwise None.
     """
 
     cameras: Camera
@@ -40,6 +43,7 @@ class Calibration(eqx.Module):
     status: Int[Array, "*batch"]
     condition: Float[Array, "*batch"]
     mirrored: Bool[Array, "*batch"]
+    refinement: _refine.Refinement | None = None
 
     @property
     def ok(self) -> Bool[Array, "*batch"]:
@@ -75,6 +79,7 @@ def calibrate(
     skew: bool = True,
     rcond: float | None = None,
     strict: bool = False,
+    refine: bool | dict = False,
 ) -> Calibration:
     """Calibrate every camera of a rig from 3-D/2-D correspondences in one call.
 
@@ -92,6 +97,10 @@ def calibrate(
     - `rcond`: relative threshold on the second-smallest singular value of the normalised DLT
       system below which a camera is `Status.DEGENERATE`; default sqrt(machine epsilon).
     - `strict`: raise `CalibrationError` if any camera failed (outside `jit` only).
+    - `refine`: seed `mvcalib.refine` with the closed-form cameras and return its cameras and
+      report: `True` for its defaults (zero skew, distortion k1, k2, p1, p2, least squares), or a
+      dict of its keyword arguments, e.g. `dict(distortion=(), loss=mc.Huber(1.0))`. The skew is
+      zeroed in the seed unless `skew=True` is among them. Failed cameras stay NaN.
 
     **Example:**
 
@@ -109,6 +118,27 @@ def calibrate(
     result = _calibrate(world, pixels, mask, skew=skew, rcond=rcond)
     if strict and _validate.is_concrete(result.status):
         result.raise_if_failed()
+    if refine is not False:
+        options = {} if refine is True else dict(refine)
+        seed = result.cameras
+        if not options.get("skew", False):
+            seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros_like(seed.skew))
+        # Failed cameras have NaN seeds; give them a harmless one and keep them NaN after.
+        ok = result.ok
+        safe = jax.tree_util.tree_map(
+            lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, 1.0), seed
+        )
+        refined = _refine.refine(safe, world, pixels, mask & ok[..., None], **options)
+        cameras = jax.tree_util.tree_map(
+            lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, jnp.nan),
+            refined.cameras,
+        )
+        result = eqx.tree_at(
+            lambda r: (r.cameras, r.report, r.refinement),
+            result,
+            (cameras, refined.report, refined),
+            is_leaf=lambda x: x is None,
+        )
     return result
 
 

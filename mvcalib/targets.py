@@ -43,6 +43,36 @@ class Target:
         return len(self.points)
 
 
+def box_corner_grid(n: int = 6, size: float = 200.0) -> Target:
+    """A denser box corner: an `n x n` grid of dots on each of its three faces (`3 n^2` dots).
+
+    Enough points to refine a camera with lens distortion from one view (the 19-dot target is
+    too sparse to separate distortion from the pose). All dots have global coordinates under
+    the same placement as `box_corner`.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> mc.targets.box_corner_grid(6).points.shape
+    (108, 3)
+
+    ```
+    """
+    g = (np.arange(n) + 0.75) * size / (n + 0.5)
+    u, v = (x.ravel() for x in np.meshgrid(g, g))
+    zero = np.zeros_like(u)
+    points = np.concatenate([np.c_[u, v, zero], np.c_[u, zero, v], np.c_[zero, u, v]], axis=0)
+    corner = box_corner(size)
+    return Target(
+        name=f"box corner, {n}x{n} dots per face",
+        points=points,
+        dot_radius=0.25 * size / (n + 0.5),
+        global_ids=np.arange(len(points)),
+        local_to_global=corner.local_to_global,
+    )
+
+
 def box_corner(size: float = 200.0) -> Target:
     """The paper's 19-dot target, made non-coplanar by putting it on the inside of a box corner.
 
