@@ -1,0 +1,213 @@
+import cv2
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import central_difference_check
+from scipy.optimize import least_squares
+
+import mvcalib as mc
+
+DIST = np.array([-0.2, 0.1, 1e-3, 1e-3, 0.0])  # k1, k2, p1, p2, k3 (OpenCV order)
+NOISE = 0.3
+IMAGE = (1000, 1100)
+
+
+def distorted_rig(seed, n_cameras, noise=NOISE):
+    """Cameras with lens distortion filling most of the image with a 108-dot box corner."""
+    target = mc.targets.box_corner_grid(6)
+    rig = mc.synthetic.random_rig(
+        jax.random.key(seed), n_cameras=n_cameras, target=target, fill=(0.8, 0.95)
+    )
+    cams = eqx.tree_at(lambda c: c.dist, rig.cameras, jnp.broadcast_to(DIST, (n_cameras, 5)))
+    _, pixels, mask = mc.synthetic.observe(
+        jax.random.key(seed + 1000), cams, rig.world, noise, IMAGE
+    )
+    return cams, rig.world, pixels, mask
+
+
+def zero_skew(cameras):
+    return eqx.tree_at(lambda c: c.skew, cameras, jnp.zeros_like(cameras.skew))
+
+
+@pytest.fixture(scope="module")
+def rig32():
+    cams, world, pixels, mask = distorted_rig(0, 32)
+    dlt = mc.calibrate(world, pixels, mask)
+    refined = mc.refine(zero_skew(dlt.cameras), world, pixels, mask)
+    return cams, world, pixels, mask, dlt, refined
+
+
+def test_refined_rms_reaches_the_noise_floor_where_the_dlt_does_not(rig32):
+    cams, world, pixels, mask, dlt, refined = rig32
+    n = np.asarray(mask.sum(-1))
+    p = len(refined.parameter_names)  # 4 intrinsics + 6 pose + 4 distortion
+    # E[sum |r|^2] = sigma^2 (2N - p) at the least-squares optimum
+    floor = NOISE * np.sqrt((2 * n - p) / n)
+    pooled = lambda rms: np.sqrt(np.sum(np.asarray(rms) ** 2 * n) / np.sum(floor**2 * n))  # noqa: E731
+    print(f"refined RMS / floor {pooled(refined.rms_after):.4f}, DLT {pooled(dlt.report.rms):.3f}")
+    assert abs(pooled(refined.rms_after) - 1) < 0.05
+    assert pooled(dlt.report.rms) > 2.0  # the DLT cannot model the distortion
+    assert bool(np.all(refined.ok)) and np.all(np.asarray(refined.iterations) < 100)
+    seed_rms = mc.reprojection_report(zero_skew(dlt.cameras), world, pixels, mask).rms
+    np.testing.assert_allclose(refined.rms_before, seed_rms, rtol=1e-12)
+    # the distortion comes back
+    np.testing.assert_allclose(np.median(refined.cameras.dist[:, :2], 0), DIST[:2], atol=0.02)
+
+
+def test_calibrate_refine_is_the_same_as_refining_by_hand(rig32):
+    cams, world, pixels, mask, dlt, refined = rig32
+    one_call = mc.calibrate(world, pixels, mask, refine=True)
+    np.testing.assert_allclose(one_call.report.rms, refined.rms_after, rtol=1e-9)
+    np.testing.assert_allclose(one_call.cameras.alpha_u, refined.cameras.alpha_u, rtol=1e-9)
+    assert one_call.refinement is not None and np.all(np.asarray(one_call.P) == np.asarray(dlt.P))
+
+
+def opencv_model_residuals(x, world, pixels):
+    fx, fy, cx, cy = x[:4]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    proj, _ = cv2.projectPoints(world, x[4:7], x[7:10], K, np.r_[x[10:14], 0.0])
+    return (proj[:, 0] - pixels).ravel()
+
+
+def test_agrees_with_opencv_calibrate_camera_and_scipy(rig32):
+    cams, world, pixels, mask, dlt, _ = rig32
+    # calibrateCamera takes float32 points only: give all three solvers the same rounded data
+    world = np.asarray(world).astype(np.float32).astype(np.float64)
+    pixels = np.asarray(pixels[:4]).astype(np.float32).astype(np.float64)
+    mask = np.asarray(mask[:4])
+    refined = mc.refine(zero_skew(dlt.cameras[:4]), world, pixels, mask)
+    for i in range(4):
+        px, W = pixels[i][mask[i]], world[mask[i]]
+        seed = zero_skew(dlt.cameras)[i]
+        ours = refined.cameras[i]
+        rms_ours = float(refined.rms_after[i])
+        # OpenCV: one view of a non-planar target needs an intrinsic guess; same model (zero
+        # skew, k1 k2 p1 p2 free, k3 fixed).
+        flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
+        crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+        rms_cv, K_cv, dist_cv, _, _ = cv2.calibrateCamera(
+            [W.astype(np.float32)], [px.astype(np.float32)], IMAGE, np.array(seed.K),
+            np.zeros(5), flags=flags, criteria=crit,
+        )  # fmt: skip
+        K_cv = np.asarray(K_cv)
+        # scipy least_squares on OpenCV's projection model (an independent implementation)
+        x0 = np.r_[
+            float(seed.alpha_u), float(seed.alpha_v), float(seed.u0), float(seed.v0),
+            cv2.Rodrigues(np.asarray(seed.R))[0].ravel(), np.asarray(seed.t), np.zeros(4),
+        ]  # fmt: skip
+        sol = least_squares(
+            opencv_model_residuals, x0, args=(W, px), method="lm", xtol=1e-15, ftol=1e-15,
+            gtol=1e-15, x_scale="jac",
+        )  # fmt: skip
+        rms_scipy = np.sqrt(np.sum(sol.fun**2) / len(px))
+        assert abs(rms_ours / rms_scipy - 1) < 1e-6, (rms_ours, rms_scipy)
+        assert abs(rms_ours / rms_cv - 1) < 1e-6, (rms_ours, rms_cv)
+        # parameters agree within their standard errors
+        std = {k: float(refined.std(k)[i]) for k in refined.parameter_names}
+        for k, theirs, cv_value in (
+            ("alpha_u", sol.x[0], K_cv[0, 0]), ("alpha_v", sol.x[1], K_cv[1, 1]),
+            ("u0", sol.x[2], K_cv[0, 2]), ("v0", sol.x[3], K_cv[1, 2]),
+            ("k1", sol.x[10], dist_cv.ravel()[0]), ("k2", sol.x[11], dist_cv.ravel()[1]),
+        ):  # fmt: skip
+            value = (
+                float(getattr(ours, k)) if k[0] != "k" else float(ours.dist["k1k2".index(k) // 2])
+            )
+            assert abs(value - theirs) < 0.01 * std[k], (k, value, theirs, std[k])
+            assert abs(value - cv_value) < 0.05 * std[k], (k, value, cv_value, std[k])
+
+
+def test_true_focal_within_two_standard_errors_in_90_to_99_percent():
+    cams, world, pixels, mask = distorted_rig(7, 200)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    out = mc.refine(seed, world, pixels, mask)
+    assert bool(np.all(out.ok))
+    z = np.asarray((out.cameras.alpha_u - cams.alpha_u) / out.std("alpha_u"))
+    coverage = np.mean(np.abs(z) <= 2)
+    print(f"coverage of +-2 SE: {coverage:.3f}; std of z: {np.std(z):.3f}")
+    assert 0.90 <= coverage <= 0.99
+
+
+# The textbook tuning constants (95 % efficiency under Gaussian noise): 1.345 and 2.385 sigma.
+ROBUST = [mc.Huber(1.345 * NOISE), mc.Cauchy(2.385 * NOISE)]
+
+
+@pytest.mark.parametrize("loss", ROBUST, ids=["huber", "cauchy"])
+def test_robust_losses_survive_ten_percent_outliers(loss):
+    cams, world, pixels, mask = distorted_rig(11, 8)
+    rng = np.random.default_rng(0)
+    pixels = np.array(pixels)
+    outlier = rng.random(mask.shape) < 0.10
+    angle = rng.uniform(0, 2 * np.pi, mask.shape)
+    pixels[outlier] += 20.0 * np.stack([np.cos(angle), np.sin(angle)], -1)[outlier]
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    plain = mc.refine(seed, world, pixels, mask)
+    robust = mc.refine(seed, world, pixels, mask, loss=loss)
+    err = lambda r: np.abs(np.asarray(r.cameras.alpha_u / cams.alpha_u) - 1)  # noqa: E731
+    print(
+        f"{type(loss).__name__}: focal error {err(robust).max():.4f}, plain {err(plain).max():.4f}"
+    )
+    assert np.all(err(robust) < 0.01)
+    assert np.any(err(plain) > 0.01)
+    # the inlier masks (final residual within 3 scales) find the outliers
+    inl, m = np.asarray(robust.inliers), np.asarray(mask)
+    assert np.mean(inl[outlier & m]) < 0.05
+    assert np.mean(inl[~outlier & m]) > 0.97
+
+
+def test_gradient_through_refine_matches_finite_differences():
+    cams, world, pixels, mask = distorted_rig(13, 1)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)[0]
+
+    def f(px):
+        out = mc.refine(seed, world, px, mask[0])
+        return jnp.stack(
+            [out.cameras.alpha_u, out.cameras.u0, out.cameras.dist[0], out.cameras.t[2]]
+        )
+
+    # A step of 0.01 px: the optimum is smooth in the pixels (truncation error ~eps^2), while
+    # with tiny steps the difference quotient measures where the iterations happen to stop.
+    central_difference_check(f, pixels[0], eps=1e-2, rtol=1e-4, atol=1e-7)
+    g = jax.grad(lambda w: mc.refine(seed, w, pixels[0], mask[0]).cameras.alpha_u)(world)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_fix_holds_parameters_and_distortion_choice():
+    cams, world, pixels, mask = distorted_rig(17, 2)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    out = mc.refine(seed, world, pixels, mask, fix=("principal_point",), distortion=("k1",))
+    np.testing.assert_array_equal(out.cameras.u0, seed.u0)
+    np.testing.assert_array_equal(out.cameras.dist[:, 1:], 0.0)
+    assert out.parameter_names == ("alpha_u", "alpha_v", "rx", "ry", "rz", "tx", "ty", "tz", "k1")
+    with pytest.raises(ValueError, match="unknown parameter 'focus'"):
+        mc.refine(seed, world, pixels, mask, fix=("focus",))
+    with pytest.raises(KeyError):
+        out.std("k2")
+
+
+def test_too_few_points_raise_alone_and_are_flagged_in_a_rig():
+    cams, world, pixels, mask = distorted_rig(19, 3)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    m = np.array(mask)
+    m[1, 6:] = False
+    out = mc.refine(seed, world, pixels, m)
+    assert np.asarray(out.result).tolist() == [0, -1, 0]
+    assert "too few" in out.messages()[1] and np.isnan(float(out.cameras.alpha_u[1]))
+    with pytest.raises(ValueError, match="6 visible points"):
+        mc.refine(seed[1], world, pixels[1], m[1])
+
+
+def test_undistort_points_matches_opencv():
+    cams, world, pixels, mask = distorted_rig(23, 2, noise=0.0)
+    ours = np.asarray(mc.undistort_points(cams, pixels))
+    for i in range(2):
+        ref = cv2.undistortPoints(
+            np.asarray(pixels[i])[:, None], np.asarray(cams.K[i]), DIST,
+            P=np.asarray(cams.K[i]),
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-15),
+        )[:, 0]  # fmt: skip
+        np.testing.assert_allclose(ours[i], ref, atol=1e-6)
+        # and it inverts the model: the undistorted pixels are the pinhole projections
+        pinhole = eqx.tree_at(lambda c: c.dist, cams[i], jnp.zeros(5))
+        np.testing.assert_allclose(ours[i], pinhole.project(world), atol=1e-8)
