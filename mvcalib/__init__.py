@@ -5,6 +5,8 @@ The public API is what this module re-exports; everything else is private.
 
 from . import synthetic as synthetic
 from . import targets as targets
+from ._bundle import RigRefinement as RigRefinement
+from ._bundle import refine_rig as refine_rig
 from ._camera import Camera as Camera
 from ._camera import distort as distort
 from ._camera import image_to_pixel as image_to_pixel

@@ -1,0 +1,263 @@
+"""Joint refinement of a whole rig: one least-squares problem over all cameras, the placement of
+the target in the global frame (the registration), and optionally the 3-D points themselves."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from . import _validate
+from ._camera import Camera
+from ._refine import (
+    _RESULT_MESSAGES,
+    PARAMETERS,
+    Cauchy,
+    Huber,
+    _free_parameters,
+    _pack,
+    _robust_weights,
+    _scales,
+    _unpack,
+)
+from ._registration import RigidTransform
+from ._rotation import rodrigues
+
+# Indices into PARAMETERS: the intrinsics (alpha_u .. skew, k1 .. k3) and the translation's
+# first entry, whose scale (the camera's distance) sets the units of the placement and points.
+_INTRINSICS = tuple(range(5)) + tuple(range(11, 16))
+_DISTANCE = PARAMETERS.index("tx")
+
+
+class RigRefinement(eqx.Module):
+    """The result of `refine_rig`.
+
+    - `cameras`: the refined rig, in the global frame.
+    - `transform`: the refined local-to-global placement of the target (`Y = R X + t`).
+    - `world`: the 3-D points in the local frame (refined when `points="free"`).
+    - `rms_before`, `rms_after`: reprojection RMS per camera (pixels).
+    - `anchor_rms`: RMS distance (world units) between the placed anchor points and their
+      measured global coordinates, after refinement (NaN without anchors).
+    - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful), `ok`, `messages()`.
+    """
+
+    cameras: Camera
+    transform: RigidTransform
+    world: Float[Array, "N 3"]
+    rms_before: Float[Array, " C"]
+    rms_after: Float[Array, " C"]
+    anchor_rms: Float[Array, ""]
+    iterations: Int[Array, ""]
+    result: Int[Array, ""]
+
+    @property
+    def ok(self) -> Bool[Array, ""]:
+        return self.result == 0
+
+    def messages(self) -> str:
+        return _RESULT_MESSAGES[int(self.result)]
+
+
+def _residuals(y, args):
+    (p0, R0, scale, free, shared, T0, world0, pixels, mask, anchors, loss) = args
+    anchor_ids, anchor_xyz, anchor_sigma = anchors
+    p = p0.at[:, free].add(y["cams"] * scale[:, free])
+    if shared:
+        # one set of intrinsics for every camera: the shared increment, in camera 0's units
+        p = p.at[:, _INTRINSICS].add(y["shared"] * scale[0, _INTRINSICS])
+    cams = jax.vmap(_unpack)(p, R0)
+    R_T = rodrigues(y["T"][:3]) @ T0.R
+    t_T = T0.t + y["T"][3:] * scale[0, _DISTANCE]
+    world = world0 + y["X"] * scale[0, _DISTANCE] * 1e-3 if "X" in y else world0
+    placed = world @ R_T.T + t_T
+    r = cams.project(placed) - pixels
+    r = jnp.where(mask[..., None], r, 0.0)
+    r = r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+    out = {"pixels": r}
+    if anchor_ids is not None:
+        out["anchors"] = (placed[anchor_ids] - anchor_xyz) / anchor_sigma
+    return out
+
+
+def refine_rig(
+    cameras: Camera,
+    world: Float[Array, "N 3"],
+    pixels: Float[Array, "C N 2"],
+    mask: Bool[Array, "C N"] | None = None,
+    *,
+    transform: RigidTransform | None = None,
+    anchors: tuple | None = None,
+    anchor_sigma: float = 1.0,
+    points: str = "fixed",
+    shared_intrinsics: bool = False,
+    distortion: Sequence[str] | str = ("k1", "k2", "p1", "p2"),
+    fix: Sequence[str] | str = (),
+    skew: bool = False,
+    loss: Huber | Cauchy | None = None,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 256,
+) -> RigRefinement:
+    """Refine a whole rig as one least-squares problem, registration included.
+
+    The rig's `cameras` live in the global frame; the target's points `world` in its own local
+    frame, placed in the global frame by `transform` (`Y = R X + t`; identity by default). The
+    residuals are every camera's reprojection errors of the placed points and, when `anchors`
+    are given, the distances between placed anchor points and their measured global
+    coordinates (in units of `anchor_sigma`), so the cameras, the registration and (with
+    `points="free"`) the 3-D points are estimated together, consistently. The linear systems
+    are solved matrix-free (LSMR on Jacobian-vector products), so large rigs fit in memory.
+
+    **Arguments:**
+
+    - `cameras`: the rig `(C,)` in the global frame, e.g. `to_global(calibrate(...).cameras, T)`.
+    - `world`: `(N, 3)` points in the local frame (starting values if `points="free"`).
+    - `pixels`, `mask`: `(C, N, 2)` observations and `(C, N)` visibility.
+    - `transform`: starting local-to-global placement (e.g. from `procrustes`).
+    - `anchors`: `(ids, global_xyz)`: indices into `world` and their measured global
+      coordinates. The placement is refined only when anchors are given (without them it is not
+      determined by images); free points need at least 3 anchors to fix the frame.
+    - `anchor_sigma`: the anchors' measurement noise in world units, against 1 px for pixels.
+    - `points`: `"fixed"` (a known target) or `"free"` (bundle adjustment of the points).
+    - `shared_intrinsics`: one set of intrinsics and distortion for all cameras (one physical
+      camera seen in several snapshots); the seed is camera 0's.
+    - `distortion`, `fix`, `skew`, `loss`: as for `refine`.
+
+    **Example:**
+
+    ```python
+    >>> import jax, jax.numpy as jnp, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3, noise=0.3)
+    >>> seed = mc.calibrate(rig.world, rig.pixels).cameras
+    >>> out = mc.refine_rig(seed, rig.world, rig.pixels, distortion=())
+    >>> bool(out.ok), out.cameras.batch_shape
+    (True, (3,))
+
+    ```
+    """
+    world, pixels, mask = _validate.correspondences(world, pixels, mask)
+    if world.ndim != 2 or pixels.ndim != 3:
+        raise ValueError(
+            f"refine_rig takes one set of points `world` (N, 3) seen by a rig, `pixels` "
+            f"(C, N, 2); got {tuple(world.shape)} and {tuple(pixels.shape)}."
+        )
+    C = pixels.shape[0]
+    if cameras.batch_shape != (C,):
+        raise ValueError(f"`cameras` must be a rig of {C} cameras; got {cameras.batch_shape}.")
+    if points not in ("fixed", "free"):
+        raise ValueError(f'`points` is "fixed" or "free"; got {points!r}.')
+    dtype = world.dtype
+    if anchors is None:
+        if points == "free":
+            raise ValueError(
+                "free points need `anchors` (>= 3 points with measured global coordinates) "
+                "to fix the frame, scale included."
+            )
+        anchor_ids, anchor_xyz = None, None
+    else:
+        anchor_ids = np.asarray(anchors[0], dtype=int)
+        anchor_xyz = _validate.floating("anchors[1]", anchors[1], (None, 3)).astype(dtype)
+        if anchor_xyz.shape != (len(anchor_ids), 3) or len(anchor_ids) < 3:
+            raise ValueError(
+                "`anchors` = (ids, global_xyz) with >= 3 ids and xyz of shape (ids, 3)."
+            )
+    transform = RigidTransform.identity(dtype) if transform is None else transform
+    free = _free_parameters(distortion, fix, skew)
+    shared = bool(shared_intrinsics)
+    cam_free = tuple(i for i in free if not (shared and i in _INTRINSICS))
+    shared_free = tuple(i for i in free if shared and i in _INTRINSICS)
+
+    cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
+    if shared:  # every camera starts from camera 0's intrinsics
+        cameras = _with_intrinsics_of(cameras, 0)
+    p0 = jax.vmap(_pack)(cameras)
+    scale = jax.vmap(_scales)(p0)
+    y0 = {
+        "cams": jnp.zeros((C, len(cam_free)), dtype),
+        "T": jnp.zeros(6, dtype),
+    }
+    if shared:
+        y0["shared"] = jnp.zeros(len(_INTRINSICS), dtype)
+    if points == "free":
+        y0["X"] = jnp.zeros_like(world)
+    shared_mask = jnp.asarray([i in shared_free for i in _INTRINSICS])
+    anchors_arg = (
+        None if anchor_ids is None else jnp.asarray(anchor_ids),
+        anchor_xyz,
+        jnp.asarray(anchor_sigma, dtype),
+    )
+    args = (p0, cameras.R, scale, jnp.asarray(cam_free, dtype=int), shared, transform, world,
+            pixels, mask, anchors_arg, loss)  # fmt: skip
+    if solver is None:
+        tol = 1e-10 if dtype == jnp.float64 else 1e-5
+        solver = optx.LevenbergMarquardt(
+            rtol=tol, atol=tol, linear_solver=lx.LSMR(rtol=1e-12, atol=1e-12)
+        )
+
+    fn = _residuals
+    if shared or anchor_ids is None:
+        # Parameters that the problem does not determine are held at zero: the placement
+        # without anchors, the shared intrinsics that are fixed.
+        def fn(y, args):
+            y = dict(y)
+            if anchor_ids is None:
+                y["T"] = jnp.zeros_like(y["T"])
+            if shared:
+                y["shared"] = jnp.where(shared_mask, y["shared"], 0.0)
+            return _residuals(y, args)
+
+    sol = _solve(fn, args, y0, solver, max_steps)
+    y = sol.value
+    if anchor_ids is None:
+        y = {**y, "T": jnp.zeros(6, dtype)}
+    if shared:
+        y = {**y, "shared": jnp.where(shared_mask, y["shared"], 0.0)}
+    p = p0.at[:, jnp.asarray(cam_free, dtype=int)].add(y["cams"] * scale[:, list(cam_free)])
+    if shared:
+        p = p.at[:, _INTRINSICS].add(y["shared"] * scale[0, _INTRINSICS])
+    refined = jax.vmap(_unpack)(p, cameras.R)
+    R_T = rodrigues(y["T"][:3]) @ transform.R
+    t_T = transform.t + y["T"][3:] * scale[0, _DISTANCE]
+    new_world = world + y["X"] * scale[0, _DISTANCE] * 1e-3 if "X" in y else world
+    placement = RigidTransform(R_T, t_T)
+    before = _rms(cameras, transform.apply(world), pixels, mask)
+    after = _rms(refined, placement.apply(new_world), pixels, mask)
+    if anchor_ids is None:
+        anchor_rms = jnp.asarray(jnp.nan, dtype)
+    else:
+        d = placement.apply(new_world[anchor_ids]) - anchor_xyz
+        anchor_rms = jnp.sqrt(jnp.mean(jnp.sum(d * d, -1)))
+    return RigRefinement(
+        cameras=refined,
+        transform=placement,
+        world=new_world,
+        rms_before=before,
+        rms_after=after,
+        anchor_rms=anchor_rms,
+        iterations=sol.stats["num_steps"],
+        result=sol.result._value,  # noqa: SLF001
+    )
+
+
+@eqx.filter_jit
+def _solve(fn, args, y0, solver, max_steps):
+    return optx.least_squares(fn, solver, y0, args, max_steps=max_steps, throw=False)
+
+
+def _rms(cameras, placed, pixels, mask):
+    r = jnp.where(mask[..., None], cameras.project(placed) - pixels, 0.0)
+    return jnp.sqrt(jnp.sum(r * r, axis=(-1, -2)) / jnp.maximum(jnp.sum(mask, -1), 1))
+
+
+def _with_intrinsics_of(cameras: Camera, i: int) -> Camera:
+    names = ("alpha_u", "alpha_v", "u0", "v0", "skew", "dist")
+    return eqx.tree_at(
+        lambda c: tuple(getattr(c, n) for n in names),
+        cameras,
+        tuple(jnp.broadcast_to(getattr(cameras, n)[i], getattr(cameras, n).shape) for n in names),
+    )
