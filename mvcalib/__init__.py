@@ -12,6 +12,8 @@ from ._camera import distort as distort
 from ._camera import image_to_pixel as image_to_pixel
 from ._camera import pixel_to_image as pixel_to_image
 from ._camera import undistort_points as undistort_points
+from ._detect import Detection as Detection
+from ._detect import detect_dots as detect_dots
 from ._dlt import dlt as dlt
 from ._pipeline import Calibration as Calibration
 from ._pipeline import CalibrationError as CalibrationError

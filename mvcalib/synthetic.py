@@ -10,6 +10,11 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera
 from ._registration import RigidTransform
+from ._render import dot_normals as dot_normals
+from ._render import ellipse_centres as ellipse_centres
+from ._render import render as render
+from ._render import true_centres as true_centres
+from ._render import visible_dots as visible_dots
 from .targets import Target, box_corner
 
 

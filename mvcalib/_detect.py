@@ -1,0 +1,375 @@
+"""Dot detection with sub-pixel centroids: the paper's Section IV.1, with scikit-image.
+
+The paper binarises the photograph, inverts it, extracts and subtracts the background, labels the
+connected components and keeps the dots. Those steps find the dots; the *position* of a dot comes
+from its grey levels: the centroid of the background-subtracted darkness over a slightly grown
+blob, which is unbiased for any symmetric blur. On rendered views (blur 1 px, noise 3 grey
+levels) it is within 0.014 px RMS of the true centroid of each dot's image, where the centroid
+of the thresholded blob is off by 0.07 px.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from skimage import color, filters, measure, morphology, segmentation
+
+__all__ = ["Detection", "detect_dots"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Detection:
+    """Dots found in one image.
+
+    **Fields:**
+
+    - `centroids`: `(K, 2)` float64 sub-pixel centres `(x = column, y = row)`, origin at the
+      centre of the top-left pixel (the convention of `mvcalib.Camera`).
+    - `area`: `(K,)` pixels in each thresholded blob.
+    - `eccentricity`: `(K,)` of the blob's moment ellipse (0 for a circle; a dot seen
+      obliquely is an ellipse, so this measures foreshortening, not quality).
+    - `contrast`: `(K,)` peak darkness of the dot relative to the local background (dark dots:
+      `1 - dot / paper`, in [0, 1]; bright dots: the grey-level step, image units in [0, 1]).
+    - `bbox`: `(K, 4)` int `(min_row, min_col, max_row, max_col)` of each blob, half-open.
+    - `stages`: with `return_stages=True`, the intermediate images of the paper's Fig. 3 as a
+      dict (`'binary'`, `'inverted'`, `'background'`, `'subtracted'`, `'detected'`), else None.
+    """
+
+    centroids: np.ndarray
+    area: np.ndarray
+    eccentricity: np.ndarray
+    contrast: np.ndarray
+    bbox: np.ndarray
+    stages: dict | None = None
+
+    def __len__(self) -> int:
+        return len(self.centroids)
+
+
+# ---------------------------------------------------------------------------- input validation
+def _as_grey(image) -> np.ndarray:
+    """The image as float32 grey levels in [0, 1], or a ValueError saying what is wrong."""
+    try:
+        array = np.asarray(image)
+    except Exception as error:  # ragged nested lists and the like
+        raise ValueError(f"`image` must be an array of grey levels; got {type(image)}.") from error
+    kind = array.dtype.kind
+    if kind == "b":
+        raise ValueError(
+            "`image` is boolean; pass the grey-level photograph (uint8, uint16 or float), "
+            "not a mask: the sub-pixel centroids need the grey levels."
+        )
+    if kind == "c":
+        raise ValueError("`image` is complex; pass real grey levels (e.g. `np.abs(image)`).")
+    if kind not in "uif":
+        raise ValueError(f"`image` must hold numbers (uint8, uint16 or float); got {array.dtype}.")
+    if array.size == 0:
+        raise ValueError(f"`image` is empty (shape {array.shape}).")
+    if array.ndim == 3 and array.shape[-1] in (3, 4):
+        # Colour: drop alpha and take the luminance (ITU-R 709 weights, skimage's rgb2gray).
+        array = color.rgb2gray(_unit_range(array[..., :3]))
+    elif array.ndim == 3 and array.shape[-1] == 1:
+        array = array[..., 0]
+    elif array.ndim != 2:
+        raise ValueError(
+            "`image` must be 2-D (height, width) or colour (height, width, 3 or 4); "
+            f"got shape {array.shape}."
+        )
+    if min(array.shape) < 16:
+        raise ValueError(f"`image` is too small to hold dots: {array.shape}, need >= 16 x 16.")
+    grey = _unit_range(array)
+    if not np.ptp(grey) > 0:
+        raise ValueError("`image` is constant: it has no contrast, so there are no dots to find.")
+    # float32 for the whole-image filters (twice as fast; 24 bits hold uint16 exactly); the
+    # per-dot centroid sums are done in float64.
+    return grey.astype(np.float32)
+
+
+def _unit_range(array: np.ndarray) -> np.ndarray:
+    if array.dtype.kind == "u":
+        return array.astype(np.float64) / np.iinfo(array.dtype).max
+    if array.dtype.kind == "i":
+        info = np.iinfo(array.dtype)
+        return (array.astype(np.float64) - info.min) / (float(info.max) - info.min)
+    array = array.astype(np.float64)
+    if not np.isfinite(array).all():
+        raise ValueError("`image` has NaN or infinite values; mask or fill them first.")
+    lo, hi = array.min(), array.max()
+    if lo < 0.0 or hi > 1.0:  # floats are taken as [0, 1]; any other range is rescaled to it
+        array = (array - lo) / (hi - lo) if hi > lo else np.zeros_like(array)
+    return array
+
+
+def _otsu(image: np.ndarray) -> float:
+    # Otsu's threshold from every other row and column: the histogram is what matters, and a
+    # quarter of a megapixel image describes it as well as all of it, in a quarter of the time.
+    return float(filters.threshold_otsu(image[::2, ::2]))
+
+
+# ---------------------------------------------------------------------------- shape tests
+def _moments(labels: np.ndarray, n: int):
+    """Area and moment-ellipse axes of labels 1..n at once (bincount over foreground pixels).
+
+    Computed for every component of a photograph in one pass; regionprops, one object per
+    component, costs ~30 us each and a real photograph has thousands of specks.
+    """
+    flat = np.flatnonzero(labels)
+    index = labels.ravel()[flat]
+    row, col = np.divmod(flat, labels.shape[1])
+    count = lambda w=None: np.bincount(index, w, minlength=n + 1)[1:]  # noqa: E731
+    area = count()
+    safe = np.maximum(area, 1)
+    mr, mc = count(row) / safe, count(col) / safe
+    # Central second moments; + 1/12 px^2 for the extent of each pixel around its centre.
+    vrr = count(row * row) / safe - mr * mr + 1 / 12
+    vcc = count(col * col) / safe - mc * mc + 1 / 12
+    vrc = count(row * col) / safe - mr * mc
+    half_trace, root = (vrr + vcc) / 2, np.sqrt(((vrr - vcc) / 2) ** 2 + vrc**2)
+    major = 4 * np.sqrt(half_trace + root)
+    minor = 4 * np.sqrt(np.maximum(half_trace - root, 0.0))
+    return area, major, minor
+
+
+def _ellipse_error(subtracted, region, level) -> float:
+    """How far a blob's outline is from an ellipse: its RMS distance from the best-fit ellipse,
+    in pixels.
+
+    The outline is the sub-pixel iso-line of the subtracted image at the detection level
+    (marching squares over the blob and a one-pixel rim around it, so it interpolates true grey
+    levels). Every dot, seen from any angle, is an ellipse, so this is the shape test that
+    survives perspective where circularity does not.
+    """
+    r0, c0, r1, c1 = region.bbox
+    height, width = subtracted.shape
+    own = np.pad(region.image, 2)
+    window = np.zeros(own.shape)
+    # The blob's bounding box grown by 2 px, clipped to the image.
+    R0, C0, R1, C1 = max(r0 - 2, 0), max(c0 - 2, 0), min(r1 + 2, height), min(c1 + 2, width)
+    window[R0 - r0 + 2 : R1 - r0 + 2, C0 - c0 + 2 : C1 - c0 + 2] = subtracted[R0:R1, C0:C1]
+    window[~morphology.dilation(own, morphology.disk(1))] = 0.0  # other blobs do not count
+    contours = measure.find_contours(window, level)
+    outline = max(contours, key=len) if contours else np.zeros((0, 2))
+    if len(outline) < 6:
+        return np.inf
+    # Algebraic conic fit on normalised coordinates (centred, unit RMS radius, for conditioning);
+    # the residual is the Sampson distance, the first-order geometric distance to the conic.
+    y, x = outline[:, 0], outline[:, 1]
+    scale = np.sqrt(((x - x.mean()) ** 2 + (y - y.mean()) ** 2).mean())
+    u, v = (x - x.mean()) / scale, (y - y.mean()) / scale
+    design = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=1)
+    a, b, c, d, e, f = np.linalg.svd(design, full_matrices=False)[2][-1]
+    if b * b - 4 * a * c >= 0:  # the best conic is not an ellipse
+        return np.inf
+    q = design @ np.array([a, b, c, d, e, f])
+    gradient = np.hypot(2 * a * u + b * v + d, b * u + 2 * c * v + e)
+    return float(scale * np.sqrt(np.mean((q / np.maximum(gradient, 1e-12)) ** 2)))
+
+
+def _candidates(labels, min_area, max_area, max_aspect) -> tuple[np.ndarray, np.ndarray]:
+    """Labels of the components with a dot's size and elongation, and their minor axes."""
+    area, major, minor = _moments(labels, int(labels.max()))
+    ok = (area >= min_area) & (area <= max_area) & (major <= max_aspect * np.maximum(minor, 1.0))
+    return np.flatnonzero(ok) + 1, minor[ok]
+
+
+def _regions(labels, keep, **kwargs):
+    """regionprops of only the labels in `keep`, with their labels unchanged."""
+    lookup = np.zeros(labels.max() + 1, dtype=labels.dtype)
+    lookup[keep] = keep
+    return measure.regionprops(lookup[labels], **kwargs)
+
+
+# ---------------------------------------------------------------------------- detection
+def detect_dots(
+    image,
+    *,
+    min_area: int = 12,
+    max_area: int | None = None,
+    max_ellipse_error: tuple[float, float] = (0.4, 0.02),
+    min_solidity: float = 0.8,
+    max_aspect: float = 12.0,
+    dark_dots: bool = True,
+    dot_size: float | None = None,
+    smooth: float = 1.0,
+    margin: int = 3,
+    exclude_border: bool = True,
+    return_stages: bool = False,
+) -> Detection:
+    """Find the dots of a calibration target in a photograph, with sub-pixel centroids.
+
+    The paper's steps (Section IV.1), made quantitative:
+
+    1. **Binarise** with Otsu's threshold: the candidate dots, and so the dot size.
+    2. **Invert** the grey image, so that dots are bright (with `dark_dots=True`).
+    3. **Background**: a grey opening of the inverted image with a square wider than any
+       candidate dot. Opening removes every bright structure the square cannot fit inside: the
+       dots go, the slowly varying rest (illumination, shading) stays.
+    4. **Subtract** it (a white top-hat): a flat background with the dots on top.
+    5. **Threshold** the subtracted image, smoothed by a Gaussian of `smooth` pixels (Otsu's
+       level, but at least 6 noise sigmas above the background), **label** its connected
+       components and keep those shaped like a dot seen from some angle: of plausible size
+       (`min_area`, `max_area`), not a streak (`max_aspect`), not a blot (`min_solidity`), and
+       with an elliptic outline (`max_ellipse_error`).
+    6. **Centroid**: per blob, the grey-level-weighted centroid over the blob grown by `margin`
+       pixels (to take in the blurred rim). The weights are `(b - I) / b` for dark dots, with `b`
+       a plane fitted to the background in a ring around the blob: the plane follows the
+       illumination gradient, and dividing by it makes the weights the ink coverage itself, so
+       the centroid is that of the dot's image whatever the lighting. Bright dots use `I - b`.
+
+    Colour images are converted to grey by luminance (skimage's `rgb2gray`; alpha is ignored).
+    Integer images are scaled by their dtype's range; float images are taken as [0, 1], and any
+    other range is rescaled to it.
+
+    **Arguments:**
+
+    - `image`: `(height, width)` grey or `(height, width, 3|4)` colour; uint8, uint16 or float.
+    - `min_area`, `max_area`: blob size bounds in pixels; `max_area` defaults to 2 % of the image.
+    - `max_ellipse_error`: `(pixels, fraction)`: a blob's outline may stray from its best-fit
+      ellipse by an RMS distance of at most `pixels + fraction * b`, `b` its minor semi-axis.
+      Plain circularity would reject dots seen obliquely; every dot, from any angle, is an
+      ellipse. The fixed part covers noise and pixel grid, which fray any outline by a few
+      tenths of a pixel; the part growing with size lets large dots' outlines bend a little
+      more. Rendered dots stay below 0.1 px, real photographed dots below ~0.5 px (highlights);
+      rectangles and blots of dot size stray by 0.5 to 2 px.
+    - `min_solidity`: area over convex hull area: a quick first cut at blots and touching blobs.
+    - `max_aspect`: the longest elongation (major / minor axis) a dot may have; rejects streaks.
+      A dot seen 85 degrees off its normal has aspect ~11.
+    - `dark_dots`: True for dark dots on a light sheet (the paper's), False for bright dots on a
+      dark background.
+    - `dot_size`: the widest dot in pixels (the minor axis, for an oblique dot), to size the
+      background filter; by default measured from the binarised image.
+    - `smooth`: sigma in pixels of the Gaussian applied before thresholding (segmentation
+      only; 0 for none). It keeps noise and highlights from fraying the blob outlines.
+    - `margin`: pixels by which each blob is grown for its centroid; about 3 blur sigmas.
+    - `exclude_border`: drop blobs touching the image border (their centroids are cut).
+    - `return_stages`: also return the intermediate images (see `Detection.stages`).
+
+    **Returns:**
+
+    A `Detection` (see there): centroids `(K, 2)` as `(x, y)` and per-blob measurements, in the
+    raster order of the blobs' first pixels.
+
+    **Example:**
+
+    ```python
+    >>> import jax, mvcalib as mc
+    >>> camera = mc.synthetic.random_rig(jax.random.key(0), 1).cameras[0]
+    >>> image = mc.synthetic.render(camera, mc.targets.box_corner(), key=0)
+    >>> found = mc.detect_dots(image)
+    >>> len(found), found.centroids.shape
+    (19, (19, 2))
+
+    ```
+    """
+    grey = _as_grey(image)
+    height, width = grey.shape
+    max_area = 0.02 * grey.size if max_area is None else max_area
+    if margin < 1:
+        raise ValueError(f"`margin` must be at least 1 pixel; got {margin}.")
+
+    # 1-2. Binarise and invert: dots bright on a dark background from here on.
+    inverted = 1.0 - grey if dark_dots else grey
+    binary = inverted > _otsu(inverted)
+
+    # 3. Background by opening. The square must fit inside no dot: its side is the widest
+    # dot-like candidate's minor axis plus the blurred rims on either side.
+    if dot_size is None:
+        _, widths = _candidates(measure.label(binary), min_area, max_area, max_aspect)
+        dot_size = float(widths.max()) if len(widths) else 30.0
+    half = int(np.ceil(dot_size / 2.0)) + margin + 2
+    square = morphology.footprint_rectangle((2 * half + 1, 2 * half + 1), decomposition="separable")
+    background = morphology.opening(inverted, square)
+
+    # 4-5. Subtract, threshold above the noise, label, keep dot-shaped blobs. The noise is the
+    # robust spread of the subtracted image (mostly background), from a subsample for speed.
+    subtracted = inverted - background
+    # Segment a lightly smoothed copy: it averages out pixel noise and the highlights of real
+    # dots, so blob outlines (and the shape test on them) follow the dot, not the noise. The
+    # centroids below use the unsmoothed grey levels.
+    smoothed = filters.gaussian(subtracted, smooth) if smooth > 0 else subtracted
+    sample = smoothed[::3, ::3]
+    offset = np.median(sample)
+    noise = 1.4826 * np.median(np.abs(sample - offset))
+    level = max(_otsu(smoothed), offset + 6.0 * noise)
+    labels = measure.label(smoothed > level, connectivity=2)
+    candidates, _ = _candidates(labels, min_area, max_area, max_aspect)
+    kept = []
+    for region in _regions(labels, candidates):
+        r0, c0, r1, c1 = region.bbox
+        if exclude_border and (r0 == 0 or c0 == 0 or r1 == height or c1 == width):
+            continue
+        if region.solidity < min_solidity:
+            continue
+        tolerance = max_ellipse_error[0] + max_ellipse_error[1] * region.axis_minor_length / 2
+        if _ellipse_error(smoothed, region, level) <= tolerance:
+            kept.append(region)
+
+    # 6. Sub-pixel centroids on the grey levels. Background rings keep clear of every blob
+    # (kept or not) and of its blurred rim.
+    centroids, contrast, measured = [], [], []
+    for region in kept:
+        centroid, peak = _weighted_centroid(grey, labels, region, margin, dark_dots)
+        if centroid is None:
+            continue  # no net contrast against its own surroundings: not a dot after all
+        centroids.append(centroid)
+        contrast.append(peak)
+        measured.append(region)
+    kept = measured
+
+    stages = None
+    if return_stages:
+        lookup = np.zeros(labels.max() + 1, dtype=np.int32)
+        lookup[[r.label for r in kept]] = np.arange(1, len(kept) + 1)
+        stages = {
+            "binary": ~binary if dark_dots else binary,
+            "inverted": inverted,
+            "background": background,
+            "subtracted": subtracted,
+            "detected": lookup[labels],
+        }
+    return Detection(
+        centroids=np.asarray(centroids, dtype=np.float64).reshape(-1, 2),
+        area=np.asarray([r.area for r in kept], dtype=np.int64),
+        eccentricity=np.asarray([r.eccentricity for r in kept], dtype=np.float64),
+        contrast=np.asarray(contrast, dtype=np.float64),
+        bbox=np.asarray([r.bbox for r in kept], dtype=np.int64).reshape(-1, 4),
+        stages=stages,
+    )
+
+
+def _weighted_centroid(grey, labels, region, margin, dark_dots):
+    ring_width = 5
+    pad = 2 * margin + ring_width + 2
+    r0, c0 = max(region.bbox[0] - pad, 0), max(region.bbox[1] - pad, 0)
+    r1, c1 = min(region.bbox[2] + pad, grey.shape[0]), min(region.bbox[3] + pad, grey.shape[1])
+    window = grey[r0:r1, c0:c1].astype(np.float64)
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    blobs = labels[r0:r1, c0:c1]
+    # Each pixel goes to the nearest blob within the distance (Euclidean), so a grown blob
+    # never takes pixels nearer to another one.
+    grown = lambda distance: segmentation.expand_labels(blobs, distance)  # noqa: E731
+    # The blob grown by `margin`: a Euclidean disc, so that the grown shape stays centrally
+    # symmetric and the blur tails it cuts off cancel.
+    inside = grown(margin) == region.label
+    # Background ring: beyond this blob's blurred rim and clear of every other blob's.
+    around = (grown(margin + 1 + ring_width) == region.label) & (grown(margin + 1) == 0)
+    if around.sum() < 3:  # crowded: fall back on every pixel of the window not near a blob
+        around = grown(margin + 1) == 0
+    if around.sum() < 3:
+        around = ~inside
+    # Local background: a plane through the ring, which follows any illumination gradient.
+    A = np.stack([np.ones(around.sum()), cols[around], rows[around]], axis=1)
+    coef = np.linalg.lstsq(A, window[around], rcond=None)[0]
+    plane = coef[0] + coef[1] * cols + coef[2] * rows
+    if dark_dots:
+        weight = (plane - window) / np.maximum(plane, 1e-6)
+    else:
+        weight = window - plane
+    weight, rows, cols = weight[inside], rows[inside], cols[inside]
+    total = weight.sum()
+    if not total > 0:
+        return None, 0.0
+    x = (weight * cols).sum() / total
+    y = (weight * rows).sum() / total
+    return (x, y), float(weight.max())
