@@ -17,6 +17,7 @@ from . import _validate
 from ._camera import Camera
 from ._refine import (
     _RESULT_MESSAGES,
+    DISTORTION,
     PARAMETERS,
     Cauchy,
     Huber,
@@ -27,11 +28,15 @@ from ._refine import (
     _unpack,
 )
 from ._registration import RigidTransform
+from ._report import masked_rms
 from ._rotation import rodrigues
 
-# Indices into PARAMETERS: the intrinsics (alpha_u .. skew, k1 .. k3) and the translation's
-# first entry, whose scale (the camera's distance) sets the units of the placement and points.
-_INTRINSICS = tuple(range(5)) + tuple(range(11, 16))
+# Indices into PARAMETERS: the intrinsics with distortion (shared by `shared_intrinsics`), and
+# the translation's first entry, whose scale (the camera's distance) sets the units of the
+# placement and of the points.
+_INTRINSICS = tuple(
+    PARAMETERS.index(n) for n in ("alpha_u", "alpha_v", "u0", "v0", "skew", *DISTORTION)
+)
 _DISTANCE = PARAMETERS.index("tx")
 
 
@@ -215,8 +220,8 @@ def refine_rig(
     refined, placement, new_world = _unknowns(
         sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
     )
-    before = _rms(cameras, transform.apply(world), pixels, mask)
-    after = _rms(refined, placement.apply(new_world), pixels, mask)
+    before = masked_rms(cameras, transform.apply(world), pixels, mask)
+    after = masked_rms(refined, placement.apply(new_world), pixels, mask)
     if anchor_ids is None:
         anchor_rms = jnp.asarray(jnp.nan, dtype)
     else:
@@ -257,11 +262,6 @@ def default_solver(dtype, n_residuals: int, n_parameters: int) -> optx.Levenberg
 @eqx.filter_jit
 def _solve(fn, args, y0, solver, max_steps):
     return optx.least_squares(fn, solver, y0, args, max_steps=max_steps, throw=False)
-
-
-def _rms(cameras, placed, pixels, mask):
-    r = jnp.where(mask[..., None], cameras.project(placed) - pixels, 0.0)
-    return jnp.sqrt(jnp.sum(r * r, axis=(-1, -2)) / jnp.maximum(jnp.sum(mask, -1), 1))
 
 
 def _with_intrinsics_of(cameras: Camera, i: int) -> Camera:

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _validate
 from ._camera import Camera
-from ._report import ReprojectionReport, compute_report
+from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import rodrigues
 
 PARAMETERS = (
@@ -183,10 +183,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     sigma2 = jnp.sum(r * r) / dof
     cov = sigma2 * jnp.linalg.inv(J.T @ J)
 
-    n = jnp.maximum(jnp.sum(mask), 1)
-    rms = lambda c: jnp.sqrt(  # noqa: E731
-        jnp.sum(jnp.where(mask[:, None], c.project(world) - pixels, 0.0) ** 2) / n
-    )
+    rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
     residual_length = jnp.linalg.norm(
         jnp.where(mask[:, None], refined.project(world) - pixels, 0.0), axis=-1
     )

@@ -55,6 +55,12 @@ def reprojection_report(
     return compute_report(cameras, world, pixels, mask)
 
 
+def masked_rms(cameras, world, pixels, mask):
+    """Reprojection RMS per camera over the visible points (inputs validated already)."""
+    r = jnp.where(mask[..., None], cameras.project(world) - pixels, 0.0)
+    return jnp.sqrt(jnp.sum(r * r, axis=(-1, -2)) / jnp.maximum(jnp.sum(mask, -1), 1))
+
+
 def compute_report(cameras, world, pixels, mask) -> ReprojectionReport:
     """`reprojection_report` on inputs that were validated already."""
     shape = jnp.broadcast_shapes(mask.shape, cameras.batch_shape + mask.shape[-1:])
