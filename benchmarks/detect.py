@@ -36,10 +36,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib.metadata
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -48,6 +45,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from _common import machine_info  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
 from mvcalib import detect_dots  # noqa: E402
@@ -124,23 +122,6 @@ def summarise(name, times, errors_e, errors_t, found, missed, spurious):
     }
 
 
-def machine_info():
-    def version(name):
-        try:
-            return importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            return None
-
-    return {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "numpy": np.__version__,
-        "scikit-image": version("scikit-image"),
-        "jax": jax.__version__,
-    }
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="20 views instead of 100; < 1 min")
@@ -150,7 +131,7 @@ def main(argv=None):
     wall = time.perf_counter()
     target = mc.targets.box_corner()
     opencv, cv2_version = opencv_detector()
-    info = machine_info() | {"opencv": cv2_version}
+    info = machine_info("scikit-image") | {"opencv": cv2_version}
     print(
         f"dot detection benchmark ({'quick' if args.quick else 'full'}): {n_views} views "
         f"{IMAGE_SIZE[0]} x {IMAGE_SIZE[1]}, blur 1 px, noise 3 grey levels, gradient 0.3; "

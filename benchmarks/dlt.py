@@ -39,11 +39,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib.metadata
 import json
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
@@ -52,6 +48,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from _common import machine_info, measure  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
 
@@ -145,34 +142,6 @@ def numpy_calibrate(world, pixels, mask):
 
 
 # ---------------------------------------------------------------------------------- timing
-def measure(fns, *, min_time, rounds):
-    """Time warm (already compiled) callables in interleaved blocks of back-to-back calls.
-
-    In each of `rounds` rounds every callable runs for at least `min_time / rounds` seconds (at
-    least one call), so each gets at least `rounds` calls lasting `min_time` in all. Interleaving
-    makes slow drifts of the machine's speed (common on shared or virtual CPUs) hit every
-    implementation alike instead of whichever ran last; calls within a block run with warm caches.
-    Returns, per name, the median and quartiles of the per-call times (seconds) and the calls.
-    """
-    times = {name: [] for name in fns}
-    block = min_time / rounds
-    for _ in range(rounds):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            while True:
-                t0 = time.perf_counter()
-                fn()
-                t1 = time.perf_counter()
-                times[name].append(t1 - t0)
-                if t1 - start >= block:
-                    break
-    stats = {}
-    for name, ts in times.items():
-        q1, median, q3 = np.percentile(ts, [25, 50, 75])
-        stats[name] = {"median": median, "q1": q1, "q3": q3, "repeats": len(ts)}
-    return stats
-
-
 def bench_one(C, *, quick):
     """Warm up, time and compare the implementations on a rig of C cameras."""
     rig = mc.synthetic.random_rig(jax.random.key(SEED), n_cameras=C, noise=NOISE)
@@ -232,21 +201,6 @@ def bench_one(C, *, quick):
 
 
 # ---------------------------------------------------------------------------------- report
-def machine_info():
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "jax": jax.__version__,
-        "jaxlib": importlib.metadata.version("jaxlib"),
-        "numpy": np.__version__,
-        "mvcalib": mc.__version__,
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-    }
-
-
 def print_table(rows, quick):
     header = (
         f"{'C':>5} {'N':>3} {'mvcalib':>11} {'numpy':>11} {'numpy/':>8} {'calibrate()':>12} "

@@ -57,11 +57,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib.metadata
 import json
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
@@ -73,7 +69,7 @@ import cv2  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import scipy  # noqa: E402
+from _common import machine_info, measure  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
@@ -186,34 +182,6 @@ def check_jacobian(problem):
 
 
 # ---------------------------------------------------------------------------------- timing
-def measure(fns, *, min_time, rounds):
-    """Time warm (already compiled) callables in interleaved blocks of back-to-back calls.
-
-    In each of `rounds` rounds every callable runs for at least `min_time / rounds` seconds (at
-    least one call), so each gets at least `rounds` calls lasting `min_time` in all. Interleaving
-    makes slow drifts of the machine's speed (common on shared or virtual CPUs) hit every
-    implementation alike instead of whichever ran last; calls within a block run with warm caches.
-    Returns, per name, the median and quartiles of the per-call times (seconds) and the calls.
-    """
-    times = {name: [] for name in fns}
-    block = min_time / rounds
-    for _ in range(rounds):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            while True:
-                t0 = time.perf_counter()
-                fn()
-                t1 = time.perf_counter()
-                times[name].append(t1 - t0)
-                if t1 - start >= block:
-                    break
-    stats = {}
-    for name, ts in times.items():
-        q1, median, q3 = np.percentile(ts, [25, 50, 75])
-        stats[name] = {"median": median, "q1": q1, "q3": q3, "repeats": len(ts)}
-    return stats
-
-
 def percentiles(x):
     """min, median, max of an integer array, as ints."""
     return [int(v) for v in np.percentile(np.asarray(x), [0, 50, 100], method="nearest")]
@@ -298,24 +266,6 @@ def bench_one(problem, C, *, quick):
 
 
 # ---------------------------------------------------------------------------------- report
-def machine_info():
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "jax": jax.__version__,
-        "jaxlib": importlib.metadata.version("jaxlib"),
-        "optimistix": importlib.metadata.version("optimistix"),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "opencv": cv2.__version__,
-        "mvcalib": mc.__version__,
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-    }
-
-
 def print_table(rows, jacobian_error):
     header = (
         f"{'C':>4} {'mvcalib':>9} {'lm':>8} {'trf':>8} {'lm/':>8} {'trf/':>8} "
@@ -420,7 +370,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     wall = time.perf_counter()
-    info = machine_info()
+    info = machine_info("optimistix", "scipy") | {"opencv": cv2.__version__}
     print(
         f"mvcalib refinement benchmark ({'quick' if args.quick else 'full'}): jax {info['jax']} "
         f"on {info['jax_backend']}, scipy {info['scipy']}, opencv {info['opencv']}, "

@@ -1,0 +1,60 @@
+"""What every benchmark script shares: interleaved timing and a record of the machine."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+
+def measure(fns, *, min_time, rounds):
+    """Time warm (already compiled) callables in interleaved blocks of back-to-back calls.
+
+    In each of `rounds` rounds every callable runs for at least `min_time / rounds` seconds (at
+    least one call), so each gets at least `rounds` calls lasting `min_time` in all. Interleaving
+    makes slow drifts of the machine's speed (common on shared or virtual CPUs) hit every
+    implementation alike instead of whichever ran last; calls within a block run with warm caches.
+    Returns, per name, the median and quartiles of the per-call times (seconds) and the calls.
+    """
+    times = {name: [] for name in fns}
+    block = min_time / rounds
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            while True:
+                t0 = time.perf_counter()
+                fn()
+                t1 = time.perf_counter()
+                times[name].append(t1 - t0)
+                if t1 - start >= block:
+                    break
+    stats = {}
+    for name, ts in times.items():
+        q1, median, q3 = np.percentile(ts, [25, 50, 75])
+        stats[name] = {"median": median, "q1": q1, "q3": q3, "repeats": len(ts)}
+    return stats
+
+
+def machine_info(*packages: str) -> dict:
+    """Platform, CPUs, JAX backend and devices, and the versions of `packages` (+ jax, mvcalib)."""
+    import jax
+
+    def version(name):
+        try:
+            return importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            return None
+
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        **{name: version(name) for name in ("jax", "jaxlib", "mvcalib", "numpy", *packages)},
+        "jax_backend": jax.default_backend(),
+        "jax_devices": [str(d) for d in jax.devices()],
+    }
