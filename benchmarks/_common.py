@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import datetime
 import importlib.metadata
+import json
 import os
 import platform
 import sys
@@ -58,3 +60,18 @@ def machine_info(*packages: str) -> dict:
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
     }
+
+
+def write_results(path, benchmark: str, *, quick: bool, machine: dict, **sections) -> None:
+    """Write one run's results as JSON: which benchmark, when, quick or full, on what machine,
+    then the script's own `sections` (settings, wall time, results...)."""
+    payload = {
+        "benchmark": benchmark,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "mode": "quick" if quick else "full",
+        "machine": machine,
+        **sections,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=2) + "\n")
+    print(f"results written to {path}")

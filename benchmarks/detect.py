@@ -35,8 +35,6 @@ Run from the repository root: `python benchmarks/detect.py [--quick]`.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import time
 from pathlib import Path
 
@@ -45,7 +43,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _common import machine_info  # noqa: E402
+from _common import machine_info, write_results  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
 from mvcalib import detect_dots  # noqa: E402
@@ -187,13 +185,12 @@ def main(argv=None):
     wall = time.perf_counter() - wall
     print(f"total wall time {wall:.1f} s")
 
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "detect",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "mode": "quick" if args.quick else "full",
-        "machine": info,
-        "settings": {
+    write_results(
+        RESULTS,
+        "detect",
+        quick=args.quick,
+        machine=info,
+        settings={
             "n_views": n_views,
             "image_size": list(IMAGE_SIZE),
             "seed": SEED,
@@ -201,17 +198,15 @@ def main(argv=None):
             "min_gap_px": MIN_GAP_PX,
             **RENDER,
         },
-        "perspective_bias_px": {
+        perspective_bias_px={
             "rms": float(np.sqrt(np.mean(bias**2))),
             "median": float(np.median(bias)),
             "max": float(bias.max()),
         },
-        "views_with_touching_dots": touching,
-        "wall_time_s": wall,
-        "results": rows,
-    }
-    RESULTS.write_text(json.dumps(payload, indent=2) + "\n")
-    print(f"results written to {RESULTS}")
+        views_with_touching_dots=touching,
+        wall_time_s=wall,
+        results=rows,
+    )
 
 
 if __name__ == "__main__":

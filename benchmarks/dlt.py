@@ -38,8 +38,6 @@ Run from the repository root: `python benchmarks/dlt.py [--quick]`.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import time
 from pathlib import Path
 
@@ -48,7 +46,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _common import machine_info, measure  # noqa: E402
+from _common import machine_info, measure, write_results  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
 
@@ -260,18 +258,15 @@ def main(argv=None):
     wall = time.perf_counter() - wall
     print(f"\ntotal wall time {wall:.1f} s")
 
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "dlt",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "mode": "quick" if args.quick else "full",
-        "machine": info,
-        "settings": {"noise_px": NOISE, "seed": SEED, "dtype": "float64"},
-        "wall_time_s": wall,
-        "results": rows,
-    }
-    RESULTS.write_text(json.dumps(payload, indent=2) + "\n")
-    print(f"results written to {RESULTS}")
+    write_results(
+        RESULTS,
+        "dlt",
+        quick=args.quick,
+        machine=info,
+        settings={"noise_px": NOISE, "seed": SEED, "dtype": "float64"},
+        wall_time_s=wall,
+        results=rows,
+    )
 
 
 if __name__ == "__main__":

@@ -56,8 +56,6 @@ Run from the repository root: `python benchmarks/refine.py [--quick]`.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import time
 from pathlib import Path
 
@@ -69,7 +67,7 @@ import cv2  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine_info, measure  # noqa: E402
+from _common import machine_info, measure, write_results  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
@@ -388,13 +386,12 @@ def main(argv=None):
     wall = time.perf_counter() - wall
     print(f"\ntotal wall time {wall:.1f} s")
 
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "refine",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "mode": "quick" if args.quick else "full",
-        "machine": info,
-        "settings": {
+    write_results(
+        RESULTS,
+        "refine",
+        quick=args.quick,
+        machine=info,
+        settings={
             "target": f"box_corner_grid({GRID})",
             "noise_px": NOISE,
             "image_size": list(IMAGE_SIZE),
@@ -408,12 +405,10 @@ def main(argv=None):
             "scipy_jacobian_max_rel_error_vs_fd": jacobian_error,
             "dtype": "float64",
         },
-        "wall_time_s": wall,
-        "results": rows,
-        "per_camera": {"n_cameras": rows[-1]["n_cameras"], **per_camera},
-    }
-    RESULTS.write_text(json.dumps(payload, indent=2) + "\n")
-    print(f"results written to {RESULTS}")
+        wall_time_s=wall,
+        results=rows,
+        per_camera={"n_cameras": rows[-1]["n_cameras"], **per_camera},
+    )
 
 
 if __name__ == "__main__":

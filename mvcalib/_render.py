@@ -110,6 +110,16 @@ def _project_rims(camera: Camera, target: Target, normals: np.ndarray, n: int) -
     return np.asarray(camera.project(world), dtype=float).reshape(len(rims), n, 2)
 
 
+def _facing(camera: Camera, target: Target, normals: np.ndarray, n: int) -> np.ndarray:
+    """Dots whose face the camera sees from the front and whose whole rim (`n` points) lies in
+    front of the camera."""
+    cam = _camera_arrays(camera)
+    points = np.asarray(target.points, float)
+    facing = np.einsum("ij,ij->i", cam["center"] - points, normals) > 0
+    rims = _boundary(target, normals, n)
+    return facing & ((rims @ cam["R"].T + cam["t"])[..., 2].min(axis=1) > 0)
+
+
 def visible_dots(
     camera: Camera,
     target: Target,
@@ -145,12 +155,8 @@ def visible_dots(
 
     ```
     """
-    cam = _camera_arrays(camera)
     normals = _normals(target, normals)
-    points = np.asarray(target.points, float)
-    drawn = np.einsum("ij,ij->i", cam["center"] - points, normals) > 0
-    rims = _boundary(target, normals, 256)
-    drawn &= (rims @ cam["R"].T + cam["t"])[..., 2].min(axis=1) > 0
+    drawn = _facing(camera, target, normals, 256)
     px = _project_rims(camera, target, normals, 256)
     width, height = image_size
     inside = (
@@ -159,7 +165,7 @@ def visible_dots(
         & (px[..., 0].max(1) <= width - 1)
         & (px[..., 1].max(1) <= height - 1)
     )
-    apart = np.ones(len(points), bool)
+    apart = np.ones(len(target.points), bool)
     if min_gap > 0:
         # Rim-to-rim distance between every pair of drawn dots (256 rim points each, so good to
         # a small fraction of a pixel for dots of tens of pixels); a rim point inside the
@@ -460,11 +466,7 @@ def render(
     rng = _rng(key)
     cam = _camera_arrays(camera)
     normals = _normals(target, normals)
-    points = np.asarray(target.points, float)
-
-    draw = np.einsum("ij,ij->i", cam["center"] - points, normals) > 0
-    rims = _boundary(target, normals, 64)
-    draw &= (rims @ cam["R"].T + cam["t"])[..., 2].min(axis=1) > 0
+    draw = _facing(camera, target, normals, 64)
     draw[np.asarray(hidden, dtype=int)] = False
     px_rims = _project_rims(camera, target, normals, 64)
 
@@ -475,7 +477,7 @@ def render(
         lo, hi = px_rims.min(1), px_rims.max(1)
         keep_out = [
             np.array([*(lo[i] + hi[i]) / 2, np.hypot(*(hi[i] - lo[i])) / 2])
-            for i in range(len(points))
+            for i in range(len(target.points))
         ]
         shapes = _clutter_shapes(rng, int(clutter), (width, height), keep_out)
         _draw_clutter(cover, shapes, int(supersample))
