@@ -3,6 +3,7 @@
 The public API is what this module re-exports; everything else is private.
 """
 
+from . import io as io
 from . import synthetic as synthetic
 from . import targets as targets
 from ._bundle import RigRefinement as RigRefinement
@@ -15,6 +16,11 @@ from ._camera import undistort_points as undistort_points
 from ._detect import Detection as Detection
 from ._detect import detect_dots as detect_dots
 from ._dlt import dlt as dlt
+from ._images import ImageCalibration as ImageCalibration
+from ._images import calibrate_images as calibrate_images
+from ._images import read_image as read_image
+from ._label import Labels as Labels
+from ._label import label_dots as label_dots
 from ._pipeline import Calibration as Calibration
 from ._pipeline import CalibrationError as CalibrationError
 from ._pipeline import calibrate as calibrate

@@ -29,6 +29,9 @@ class Detection:
     - `area`: `(K,)` pixels in each thresholded blob.
     - `eccentricity`: `(K,)` of the blob's moment ellipse (0 for a circle; a dot seen
       obliquely is an ellipse, so this measures foreshortening, not quality).
+    - `major`, `minor`: `(K,)` axis lengths of the blob's moment ellipse, in pixels. The major
+      axis is the dot's diameter over its distance, little changed by obliquity: how
+      `mvcalib.label_dots` tells large fiducial dots from the others.
     - `contrast`: `(K,)` peak darkness of the dot relative to the local background (dark dots:
       `1 - dot / paper`, in [0, 1]; bright dots: the grey-level step, image units in [0, 1]).
     - `bbox`: `(K, 4)` int `(min_row, min_col, max_row, max_col)` of each blob, half-open.
@@ -41,6 +44,8 @@ class Detection:
     eccentricity: np.ndarray
     contrast: np.ndarray
     bbox: np.ndarray
+    major: np.ndarray
+    minor: np.ndarray
     stages: dict | None = None
 
     def __len__(self) -> int:
@@ -334,6 +339,8 @@ def detect_dots(
         eccentricity=np.asarray([r.eccentricity for r in kept], dtype=np.float64),
         contrast=np.asarray(contrast, dtype=np.float64),
         bbox=np.asarray([r.bbox for r in kept], dtype=np.int64).reshape(-1, 4),
+        major=np.asarray([r.axis_major_length for r in kept], dtype=np.float64),
+        minor=np.asarray([r.axis_minor_length for r in kept], dtype=np.float64),
         stages=stages,
     )
 

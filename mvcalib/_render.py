@@ -101,7 +101,7 @@ def _boundary(target: Target, normals: np.ndarray, n: int) -> np.ndarray:
     e1, e2 = _plane_basis(normals)
     phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     rim = np.cos(phi)[None, :, None] * e1[:, None] + np.sin(phi)[None, :, None] * e2[:, None]
-    return np.asarray(target.points, float)[:, None] + target.dot_radius * rim
+    return np.asarray(target.points, float)[:, None] + target.radii[:, None, None] * rim
 
 
 def _project_rims(camera: Camera, target: Target, normals: np.ndarray, n: int) -> np.ndarray:
@@ -273,14 +273,14 @@ def _draw_dots(cover, cam, target, normals, px_rims, draw, s):
     e1, e2 = _plane_basis(normals)
     points = np.asarray(target.points, float)
     distorted = bool(np.any(cam["dist"] != 0))
-    radius = float(target.dot_radius)
     for i in np.flatnonzero(draw):
+        radius = float(target.radii[i])
         # Plane (a, b) -> normalised camera coordinates: [x, y, 1] ~ G [a, b, 1] with
         # G = [R e1, R e2, R c + t]; a sample is on the dot iff a^2 + b^2 <= r^2 (exact conic).
         G = np.stack([cam["R"] @ e1[i], cam["R"] @ e2[i], cam["R"] @ points[i] + cam["t"]], 1)
         Ginv = np.linalg.inv(G) @ Kinv  # pixel -> plane, for undistorted pixels
 
-        def on_dot(X, Y, Ginv=Ginv):
+        def on_dot(X, Y, Ginv=Ginv, radius=radius):
             if distorted:
                 xn = Kinv[0, 0] * X + Kinv[0, 1] * Y + Kinv[0, 2]
                 yn = Kinv[1, 1] * Y + Kinv[1, 2]
@@ -414,7 +414,7 @@ def render(
 ) -> np.ndarray:
     """A greyscale photograph of `target` (white sheet, black dots) taken by `camera`.
 
-    Every dot is a disc of radius `target.dot_radius` on its face plane and is drawn exactly as
+    Every dot is a disc of radius `target.radii[i]` on its face plane and is drawn exactly as
     the camera sees it: a sub-pixel sample is dark iff it back-projects (through the lens
     distortion and the face's homography) into the disc, so perspective and distortion are in the
     picture, not approximated. Only dots on faces turned towards the camera are drawn. A dot on

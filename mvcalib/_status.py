@@ -16,6 +16,7 @@ class Status(enum.IntEnum):
     DEGENERATE = 2
     NON_FINITE = 3
     POINTS_BEHIND = 4
+    NOT_LABELLED = 5
 
     @property
     def message(self) -> str:
@@ -32,5 +33,9 @@ _MESSAGES = {
     Status.NON_FINITE: "NaN or inf among the visible points",
     Status.POINTS_BEHIND: (
         "the visible points lie on both sides of the camera: some correspondences are wrong"
+    ),
+    Status.NOT_LABELLED: (
+        "the image could not be read, or its dots could not be told apart with certainty "
+        "(see the per-image message of `calibrate_images`)"
     ),
 }

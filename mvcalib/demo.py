@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._detect import Detection, detect_dots
+from ._images import ImageCalibration, calibrate_images
+from ._label import Labels, label_dots
 from ._pipeline import Calibration, calibrate
 from ._registration import RigidTransform, procrustes, procrustes_paper, to_global
+from ._render import render
+from .io import write_atomic
 from .synthetic import PaperScene, paper_scene
+from .targets import box_corner
 
 PIXEL_SIZE_MM = (0.0045, 0.0045)  # sensor element pitch for the image-plane coordinates
 
@@ -180,3 +187,150 @@ def main(
     dtype = jnp.float32 if float32 else jnp.float64
     print(format_result(run(noise=noise, global_noise=global_noise, seed=seed, dtype=dtype)))
     return 0
+
+
+# ---------------------------------------------------------------------------- from photographs
+@dataclasses.dataclass
+class ImageDemoResult:
+    scene: PaperScene
+    images: list  # the four rendered photographs
+    result: ImageCalibration
+    focal_error: np.ndarray  # (4,) relative error of alpha_u
+    rotation_error: np.ndarray  # (4,) degrees between estimated and true R
+    unified: np.ndarray  # (4, 2) the fixed point's pixel from each snapshot
+    figure: pathlib.Path | None
+
+
+def _angle_deg(R_est, R_true) -> np.ndarray:
+    cos = (np.trace(R_est @ np.swapaxes(R_true, -1, -2), axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _grey8(image) -> np.ndarray:
+    image = np.asarray(image, dtype=np.float64)
+    lo, hi = image.min(), image.max()
+    return np.uint8(np.rint(255 * (image - lo) / (hi - lo if hi > lo else 1.0)))
+
+
+def stages_figure(
+    image, detection: Detection, labels: Labels | None = None, fiducials=()
+) -> np.ndarray:
+    """The paper's Fig. 3 as one RGB picture: 2 x 3 panels, in reading order: the photograph,
+    binarised, inverted, background (grey opening), background subtracted, and the detected dots
+    (each kept blob in its own colour, labelled dots' centroids marked with a white cross,
+    fiducials with a larger one).
+
+    `detection` must come from `detect_dots(image, return_stages=True)`.
+    """
+    from skimage import color, draw
+
+    stages = detection.stages
+    if stages is None:
+        raise ValueError("pass a detection made with `detect_dots(..., return_stages=True)`.")
+    panels = [
+        _grey8(image if np.ndim(image) == 2 else color.rgb2gray(image)),
+        _grey8(stages["binary"]),
+        _grey8(stages["inverted"]),
+        _grey8(stages["background"]),
+        _grey8(stages["subtracted"]),
+    ]
+    panels = [np.repeat(p[..., None], 3, axis=-1) for p in panels]
+    detected = np.uint8(255 * color.label2rgb(stages["detected"], bg_label=0, bg_color=(0, 0, 0)))
+    height, width = detected.shape[:2]
+    if labels is not None:
+        for m in np.flatnonzero(labels.mask):
+            x, y = labels.pixels[m]
+            arm = 14 if m in set(np.asarray(fiducials).tolist()) else 8
+            for dr, dc in ((0, 1), (1, 0)):
+                rr, cc = draw.line(
+                    int(round(y - arm * dr)), int(round(x - arm * dc)),
+                    int(round(y + arm * dr)), int(round(x + arm * dc)),
+                )  # fmt: skip
+                keep = (rr >= 0) & (rr < height) & (cc >= 0) & (cc < width)
+                detected[rr[keep], cc[keep]] = 255
+    panels.append(detected)
+    gap = 12
+    canvas = np.full((2 * height + gap, 3 * width + 2 * gap, 3), 255, np.uint8)
+    for k, panel in enumerate(panels):
+        r, c = divmod(k, 3)
+        canvas[r * (height + gap) : r * (height + gap) + height, c * (width + gap) :][:, :width] = (
+            panel
+        )
+    return canvas
+
+
+def run_images(*, seed: int = 2010, figure=None, clutter: int = 3) -> ImageDemoResult:
+    """The paper's pipeline from rendered photographs of the four snapshots (see `run`)."""
+    scene = paper_scene(jax.random.key(seed), noise=0.0)
+    target = box_corner()
+    images = [
+        render(scene.local_cameras[i], target, scene.image_size, key=seed + i, clutter=clutter)
+        for i in range(len(scene.local_cameras))
+    ]
+    result = calibrate_images(images, target)
+    cameras = jax.tree_util.tree_map(np.asarray, result.cameras)
+    true = jax.tree_util.tree_map(np.asarray, scene.local_cameras)
+    focal_error = np.abs(cameras.alpha_u / true.alpha_u - 1.0)
+    rotation_error = _angle_deg(cameras.R, true.R)
+    local = scene.world[np.asarray(scene.registration_ids)]
+    registration = procrustes(local, scene.world_global)
+    unified = to_global(result.cameras, registration).project(scene.fixed_point[None])[:, 0]
+    written = None
+    if figure is not None:
+        detection = detect_dots(images[0], return_stages=True)
+        labels = label_dots(detection, target)
+        buffer = _png_bytes(stages_figure(images[0], detection, labels, target.fiducials))
+        written = write_atomic(figure, buffer)
+    return ImageDemoResult(
+        scene, images, result, focal_error, rotation_error, np.asarray(unified), written
+    )
+
+
+def _png_bytes(picture: np.ndarray) -> bytes:
+    import imageio.v3 as iio  # scikit-image's own image I/O
+
+    return iio.imwrite("<bytes>", picture, extension=".png")
+
+
+def format_images(demo: ImageDemoResult) -> str:
+    scene = demo.scene
+    out = [
+        "mvcalib demo --images: the paper's pipeline from photographs (rendered, 1000 x 1100 px,",
+        "  blur 1 px, noise 3 grey levels, illumination gradient, 3 clutter blobs per image)",
+        "",
+        "1. Dots detected (binarise, invert, background by opening, subtract, label, keep dots)",
+        "   and labelled from the six large fiducial dots, per snapshot:",
+    ]
+    for name, message in zip(demo.result.names, demo.result.messages):
+        out.append(f"   {name}: {message}")
+    out += ["", "2. Camera per snapshot from its 19 labelled dots (estimate vs truth)"]
+    cameras = jax.tree_util.tree_map(np.asarray, demo.result.cameras)
+    true = scene.local_cameras
+    for i in range(len(demo.images)):
+        out.append(
+            f"   snapshot {i + 1}: alpha_u {cameras.alpha_u[i]:8.2f} / {float(true.alpha_u[i]):.2f}"
+            f"  ({100 * demo.focal_error[i]:.3f} %), rotation off by "
+            f"{demo.rotation_error[i]:.3f} deg"
+        )
+    out += ["", "3. Table I on the labelled dots", str(demo.result.calibration.report), ""]
+    out.append("4. The fixed room point from every snapshot's camera in the global frame")
+    for i, px in enumerate(demo.unified):
+        out.append(f"   snapshot {i + 1}: pixel ({px[0]:9.3f}, {px[1]:9.3f})")
+    spread = np.ptp(demo.unified, axis=0).max()
+    out.append(
+        f"   spread {spread:.3f} px (the detected centroids are the dots' ellipse centres, "
+        "which perspective moves by up to ~1 px from the projected dot centres)"
+    )
+    if demo.figure is not None:
+        out += [
+            "",
+            f"Processing stages of snapshot 1 written to {demo.figure}",
+            "  (panels: photograph, binary, inverted, background, subtracted, detected + labels)",
+        ]
+    return "\n".join(out)
+
+
+def main_images(*, seed: int = 2010, figure="mvcalib_stages.png") -> int:
+    demo = run_images(seed=seed, figure=figure)
+    print(format_images(demo))
+    return 0 if demo.result.ok.all() else 1

@@ -15,11 +15,13 @@ class Target:
 
     - `name`: a label.
     - `points`: dot centres `(M, 3)` in the local frame, in `units`.
-    - `dot_radius`: radius of the printed dots, in `units`.
+    - `dot_radius`: radius of the printed dots, in `units`: one number, or one per dot `(M,)`.
     - `global_ids`: indices of the dots whose coordinates were also measured in the global (room)
       frame (the paper measures 18 of its 19).
     - `local_to_global`: the 4 x 4 matrix of the known placement `Y = R X + T` used for
       `global_points`.
+    - `fiducials`: indices of the dots printed larger than the rest. Their sizes are what lets
+      `mvcalib.label_dots` tell which detected blob is which dot without a human (see there).
     """
 
     name: str
@@ -28,6 +30,12 @@ class Target:
     global_ids: np.ndarray
     local_to_global: np.ndarray
     units: str = "mm"
+    fiducials: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
+
+    @property
+    def radii(self) -> np.ndarray:
+        """The radius of every dot, `(M,)`."""
+        return np.broadcast_to(np.asarray(self.dot_radius, dtype=float), (len(self.points),))
 
     @property
     def global_points(self) -> np.ndarray:
@@ -73,7 +81,13 @@ def box_corner_grid(n: int = 6, size: float = 200.0) -> Target:
     )
 
 
-def box_corner(size: float = 200.0) -> Target:
+# Eight dots, three on two faces and two on the third, none next to the corner (where grazing
+# views can merge dot images) and no two side by side (so that every dot has small neighbours
+# to be compared with). Any six of them visible determine the camera: up to two may be hidden.
+BOX_CORNER_FIDUCIALS = (1, 3, 5, 8, 9, 13, 15, 17)
+
+
+def box_corner(size: float = 200.0, *, fiducial_scale: float = 1.75) -> Target:
     """The paper's 19-dot target, made non-coplanar by putting it on the inside of a box corner.
 
     Three faces meet at the local origin: the floor `z = 0`, the wall `y = 0` and the wall `x = 0`,
@@ -81,6 +95,10 @@ def box_corner(size: float = 200.0) -> Target:
     frames as in the paper) and the corner itself is dot 18. Seen from anywhere in the positive
     octant all three faces are visible, and the dots lie on three planes, far from coplanar, so
     eight dots spread over the faces already determine a camera.
+
+    Eight dots (`BOX_CORNER_FIDUCIALS`) are printed `fiducial_scale` times larger
+    than the others: the fiducials from which `mvcalib.label_dots` finds which blob is which dot.
+    The paper identified its dots by hand and printed them all alike (`fiducial_scale=1`).
 
     **Example:**
 
@@ -108,7 +126,10 @@ def box_corner(size: float = 200.0) -> Target:
     return Target(
         name="box corner, 19 dots",
         points=points,
-        dot_radius=0.04 * size,
+        dot_radius=np.where(np.isin(np.arange(19), BOX_CORNER_FIDUCIALS), fiducial_scale, 1.0)
+        * 0.04
+        * size,
         global_ids=np.arange(18),
         local_to_global=M,
+        fiducials=np.array(BOX_CORNER_FIDUCIALS) if fiducial_scale != 1 else np.zeros(0, int),
     )

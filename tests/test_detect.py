@@ -46,13 +46,14 @@ def views_200():
         found = detect_dots(image)
         records.append(
             dict(
+                labels=mc.label_dots(found, TARGET),
                 found=found.centroids,
                 ellipse=ellipse_centres(camera, TARGET),
                 true=true_centres(camera, TARGET),
                 apart=visible_dots(camera, TARGET, min_gap=MIN_GAP_PX),
             )
         )
-    print(f"\n200 views rendered and detected in {time.perf_counter() - start:.1f} s")
+    print(f"\n200 views rendered, detected and labelled in {time.perf_counter() - start:.1f} s")
     return records
 
 
@@ -92,6 +93,19 @@ def test_every_dot_is_found_and_nothing_else_in_clean_images(views_200):
         assert len(np.unique(match)) == len(TARGET)
     print(f"\n{touching_views} of {len(views_200)} views have two dot images touching")
     assert touching_views <= 0.05 * len(views_200)
+
+
+def test_labels_are_all_correct_over_200_views(views_200):
+    # Truth: each dot's own blob is the detection nearest its ellipse centre (within 3 px).
+    labelled = 0
+    for r in views_200:
+        labels, truth = r["labels"], _match(r["found"], r["ellipse"])
+        assert labels.ok, labels.message
+        assert (labels.index[labels.mask] == truth[labels.mask]).all(), "a dot labelled wrongly"
+        # Every dot clear of the others is labelled; touching pairs may be left out.
+        assert labels.mask[r["apart"]].all()
+        labelled += int(labels.mask.sum())
+    print(f"\nlabels: 200 of 200 views, {labelled} dots, all correct")
 
 
 def test_clutter_does_not_hide_dots_and_most_is_rejected():
@@ -145,7 +159,7 @@ def test_ellipse_centre_is_the_conic_centre_for_a_pinhole_camera():
         e2 = np.cross(normal, e1)
         H = K @ np.stack([R @ e1, R @ e2, R @ TARGET.points[i] + t], axis=1)
         Hinv = np.linalg.inv(H)
-        C = Hinv.T @ np.diag([1.0, 1.0, -(TARGET.dot_radius**2)]) @ Hinv
+        C = Hinv.T @ np.diag([1.0, 1.0, -(TARGET.radii[i] ** 2)]) @ Hinv
         centre = -np.linalg.solve(C[:2, :2], C[:2, 2])
         np.testing.assert_allclose(centres[i], centre, atol=1e-6)
 

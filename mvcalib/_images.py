@@ -1,0 +1,225 @@
+"""From photographs of the target to a calibrated rig: detect, label, calibrate."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+import sys
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._detect import Detection, detect_dots
+from ._label import Labels, label_dots
+from ._pipeline import Calibration, CalibrationError, calibrate
+from ._report import format_table
+from ._status import Status
+from .targets import Target, box_corner
+
+__all__ = ["ImageCalibration", "calibrate_images", "read_image"]
+
+
+def read_image(path) -> np.ndarray:
+    """Read an image file as an array, or raise `ValueError` saying what is wrong with it.
+
+    TIFF through tifffile (8/16-bit, compressed with the `imagecodecs` package), every other
+    format (PNG, JPEG, BMP, GIF, ...) through Pillow: both come with scikit-image. Grey or colour.
+    """
+    import imageio.v3 as iio  # scikit-image's own image I/O; imported only when files are read
+
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    # One named reader per format: imageio's own search would also try other installed
+    # readers (OpenCV's prints its failures to stderr).
+    tiff = path.suffix.lower() in (".tif", ".tiff")
+    try:
+        # The first frame of an animation (GIF, APNG); a TIFF's first page.
+        image = (
+            iio.imread(path, plugin="tifffile", key=0)
+            if tiff
+            else iio.imread(path, index=0, plugin="pillow")
+        )
+    except Exception as error:  # every reader raises its own kind; all mean "not an image"
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(f"{path}: cannot be read as an image ({reason[:200]})") from None
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
+        image = np.moveaxis(image, 0, -1)  # planar (channels-first) TIFFs
+    return image
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageCalibration:
+    """The result of `calibrate_images`: one camera per image.
+
+    **Fields:**
+
+    - `calibration`: the `mvcalib.Calibration` of all images at once (cameras, report, status).
+      Images that could not be read or labelled have `Status.NOT_LABELLED` and NaN cameras.
+    - `labels`: one `mvcalib.Labels` per image (pixels and mask of every target dot).
+    - `detections`: one `mvcalib.Detection` per image, None where the image could not be read or
+      searched.
+    - `names`: a name per image (its path, or `image i`).
+    - `messages`: per image, what happened: the labelling summary or why it failed.
+    """
+
+    calibration: Calibration
+    labels: list[Labels]
+    detections: list[Detection | None]
+    names: list[str]
+    messages: list[str]
+
+    @property
+    def cameras(self):
+        return self.calibration.cameras
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.asarray(self.calibration.ok)
+
+    @property
+    def pixels(self) -> np.ndarray:
+        return np.stack([lab.pixels for lab in self.labels])
+
+    @property
+    def mask(self) -> np.ndarray:
+        return np.stack([lab.mask for lab in self.labels])
+
+    def raise_if_failed(self) -> ImageCalibration:
+        """Raise `CalibrationError` naming every image that did not give a camera."""
+        bad = np.flatnonzero(~self.ok)
+        if bad.size:
+            status = np.asarray(self.calibration.status)
+            lines = [f"{self.names[i]}: {self._why(i, status[i])}" for i in bad]
+            raise CalibrationError(
+                f"{bad.size} of {len(self.names)} images gave no camera:\n" + "\n".join(lines)
+            )
+        return self
+
+    def _why(self, i: int, status) -> str:
+        return self.messages[i] if status == Status.NOT_LABELLED else Status(int(status)).message
+
+    def __str__(self) -> str:
+        status = np.asarray(self.calibration.status)
+        width = max(len(n) for n in self.names)
+        lines = [f"{'image':<{width}}  blobs  dots  result"]
+        for i, name in enumerate(self.names):
+            detection = self.detections[i]
+            blobs = "-" if detection is None else str(len(detection))
+            dots = int(self.labels[i].mask.sum())
+            result = "calibrated" if status[i] == Status.OK else self._why(i, status[i])
+            lines.append(f"{name:<{width}}  {blobs:>5}  {dots:>4}  {result}")
+        names = [Status(int(s)).name.lower() for s in status]
+        return "\n".join(lines) + "\n\n" + format_table(self.calibration.report, status=names)
+
+
+def _as_list(images) -> list:
+    if isinstance(images, (str, os.PathLike)):
+        return [images]
+    if isinstance(images, np.ndarray):
+        if images.ndim == 2 or (images.ndim == 3 and images.shape[-1] in (3, 4)):
+            raise ValueError(
+                f"`images` looks like one image (shape {images.shape}); pass a list: [image]."
+            )
+        if images.ndim not in (3, 4):
+            raise ValueError(
+                "`images` must be a list of images or paths, or a stack (C, height, width[, 3]);"
+                f" got an array of shape {images.shape}."
+            )
+        return list(images)
+    try:
+        images = list(images)
+    except TypeError:
+        raise ValueError(
+            f"`images` must be a list of images or image paths; got {type(images).__name__}."
+        ) from None
+    if not images:
+        raise ValueError("`images` is empty: pass at least one image.")
+    return images
+
+
+def calibrate_images(
+    images,
+    target: Target | None = None,
+    *,
+    refine: bool | dict = False,
+    detect: dict | None = None,
+    label: dict | None = None,
+    strict: bool = False,
+    progress: bool | None = None,
+) -> ImageCalibration:
+    """Calibrate one camera per photograph of `target`: the paper's whole pipeline from images.
+
+    For each image: detect the dots (`mvcalib.detect_dots`, the paper's morphological steps),
+    label them (`mvcalib.label_dots`: which blob is which dot, from the target's fiducials); then
+    all views at once: DLT, closed-form decomposition and Table I (`mvcalib.calibrate`), optionally
+    refined. An image that cannot be read or labelled with certainty gives a flagged camera
+    (`Status.NOT_LABELLED`, NaN parameters, a message saying why), never a wrong one, and the
+    other images are calibrated as if it were not there.
+
+    **Arguments:**
+
+    - `images`: a list of images (arrays: grey or colour, 8/16-bit or float) and/or image paths,
+      or a stack `(C, height, width[, 3])`.
+    - `target`: the photographed target; default `mvcalib.targets.box_corner()`.
+    - `refine`: as for `mvcalib.calibrate` (e.g. `True`, or `dict(distortion=("k1", "k2"))`).
+    - `detect`, `label`: keyword arguments for `detect_dots` and `label_dots`.
+    - `strict`: raise `CalibrationError` if any image gives no camera.
+    - `progress`: print one line per image to stderr; default: when there are more than 4.
+
+    **Returns:** an `ImageCalibration` (see there); `print` it for a per-image summary and
+    Table I.
+
+    **Example:**
+
+    ```python
+    >>> import jax, mvcalib as mc
+    >>> target = mc.targets.box_corner()
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2)
+    >>> photos = [mc.synthetic.render(rig.cameras[i], target, key=i) for i in range(2)]
+    >>> result = mc.calibrate_images(photos, target)
+    >>> result.ok.tolist(), result.mask.sum(axis=1).tolist()
+    ([True, True], [19, 19])
+
+    ```
+    """
+    target = box_corner() if target is None else target
+    images = _as_list(images)
+    progress = len(images) > 4 if progress is None else progress
+    detect, label = dict(detect or {}), dict(label or {})
+    names, detections, labels = [], [], []
+    for i, image in enumerate(images):
+        is_path = isinstance(image, (str, os.PathLike))
+        names.append(str(image) if is_path else f"image {i}")
+        detection = None
+        try:
+            detection = detect_dots(read_image(image) if is_path else image, **detect)
+            labels.append(label_dots(detection, target, **label))
+        except ValueError as error:
+            message = str(error).removeprefix(f"{names[-1]}: ")  # the name is shown beside it
+            labels.append(Labels.failed(len(target.points), 0, message))
+        detections.append(detection)
+        if progress:
+            print(f"[{i + 1}/{len(images)}] {names[-1]}: {labels[-1].message}", file=sys.stderr)
+
+    mask = np.stack([lab.mask for lab in labels])
+    pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))  # hidden: no influence
+    dtype = jnp.result_type(float)
+    world = jnp.asarray(target.points, dtype)
+    calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
+    unlabelled = jnp.asarray([not lab.ok for lab in labels])
+    status = jnp.where(unlabelled, jnp.int32(Status.NOT_LABELLED), calibration.status)
+    calibration = eqx.tree_at(lambda c: c.status, calibration, status)
+    result = ImageCalibration(
+        calibration=calibration,
+        labels=labels,
+        detections=detections,
+        names=names,
+        messages=[lab.message for lab in labels],
+    )
+    if strict:
+        result.raise_if_failed()
+    return result

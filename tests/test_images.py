@@ -1,0 +1,216 @@
+"""From photographs to cameras: calibrate_images, the image demo, the rig file, and the CLI."""
+
+import json
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import jax
+import numpy as np
+import pytest
+
+import mvcalib as mc
+from mvcalib import demo
+from mvcalib.synthetic import render
+
+TARGET = mc.targets.box_corner()
+
+
+@pytest.fixture(scope="module")
+def image_demo(tmp_path_factory):
+    figure = tmp_path_factory.mktemp("demo") / "stages.png"
+    return demo.run_images(figure=figure)
+
+
+def test_demo_images_calibrate_within_one_percent_and_half_a_degree(image_demo):
+    # The paper's four snapshots, rendered (blur 1 px, noise 3 grey levels, gradient, clutter),
+    # then detected, labelled and calibrated with no correspondence given.
+    assert image_demo.result.ok.all()
+    assert image_demo.result.mask.all()  # all 19 dots labelled in every snapshot
+    print(
+        f"\nfocal error {np.round(100 * image_demo.focal_error, 3)} %, rotation error "
+        f"{np.round(image_demo.rotation_error, 3)} deg"
+    )
+    assert (image_demo.focal_error < 0.01).all()
+    assert (image_demo.rotation_error < 0.5).all()
+    # The fixed room point lands on one pixel from every snapshot, to within the perspective
+    # bias of the dots' ellipse centres (~0.2 px RMS): here within half a pixel.
+    assert np.ptp(image_demo.unified, axis=0).max() < 0.5
+
+
+def test_demo_writes_the_processing_stage_figure(image_demo):
+    picture = iio.imread(image_demo.figure)
+    height, width = image_demo.images[0].shape
+    assert picture.shape == (2 * height + 12, 3 * width + 24, 3)
+    # Panel 2 (binary) is black and white only; panel 6 (detected) has colour.
+    binary = picture[:height, width + 12 : 2 * width + 12]
+    assert set(np.unique(binary)) <= {0, 255}
+    detected = picture[height + 12 :, 2 * width + 24 :]
+    assert np.ptp(detected.astype(int), axis=-1).max() > 100
+    assert not list(image_demo.figure.parent.glob(".*.tmp"))  # atomic write left nothing behind
+
+
+def test_bad_images_are_flagged_and_the_good_ones_calibrated_as_if_alone(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(7), 2)
+    good = [render(rig.cameras[i], TARGET, key=i) for i in range(2)]
+    corrupt = tmp_path / "corrupt.png"
+    corrupt.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    bad = [
+        np.zeros((0, 0)),  # empty
+        np.full((200, 200), 90, np.uint8),  # constant
+        np.ones((200, 200)) + 1j,  # wrong dtype
+        corrupt,  # not an image
+        tmp_path / "missing.png",
+        render(rig.cameras[0], mc.targets.box_corner_grid(4), key=3),  # another target
+    ]
+    result = mc.calibrate_images(good + bad, TARGET)
+    alone = mc.calibrate_images(good, TARGET)
+    assert result.ok.tolist() == [True, True] + [False] * len(bad)
+    status = np.asarray(result.calibration.status)
+    assert (status[2:] == mc.Status.NOT_LABELLED).all()
+    for i in range(2):
+        np.testing.assert_array_equal(
+            np.asarray(result.calibration.P[i]), np.asarray(alone.calibration.P[i])
+        )
+    assert np.isnan(np.asarray(result.cameras.alpha_u[2:])).all()
+    messages = result.messages[2:]
+    for message, word in zip(
+        messages, ["empty", "constant", "complex", "cannot be read", "no such file", "fiducial"]
+    ):
+        assert word in message, message
+    text = str(result)
+    assert "missing.png" in text and "calibrated" in text and "Back-projection" in text
+    with pytest.raises(mc.CalibrationError, match="6 of 8 images gave no camera"):
+        result.raise_if_failed()
+    with pytest.raises(mc.CalibrationError):
+        mc.calibrate_images(good + bad[:1], TARGET, strict=True)
+
+
+def test_colour_and_16_bit_photographs_give_the_same_cameras():
+    camera = mc.synthetic.random_rig(jax.random.key(8), 1).cameras[0]
+    grey = render(camera, TARGET, key=8)
+    variants = [grey, np.repeat(grey[..., None], 3, axis=-1), grey.astype(np.uint16) * 257]
+    result = mc.calibrate_images(variants, TARGET)
+    assert result.ok.all()
+    P = np.asarray(result.calibration.P)
+    np.testing.assert_allclose(P[1], P[0], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(P[2], P[0], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "images, message",
+    [
+        (np.zeros((100, 100)), "one image"),
+        (np.zeros((100, 100, 3)), "one image"),
+        ([], "empty"),
+        (42, "list of images"),
+    ],
+    ids=["2-D array", "colour array", "empty list", "number"],
+)
+def test_calibrate_images_refuses_what_is_not_a_list_of_images(images, message):
+    with pytest.raises(ValueError, match=message):
+        mc.calibrate_images(images)
+
+
+# ---------------------------------------------------------------------------- rig files
+def test_rig_json_round_trip_is_exact_including_failed_cameras(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(9), 3).cameras
+    rig = jax.tree_util.tree_map(lambda x: x.at[1].set(jax.numpy.nan), rig)  # a failed camera
+    path = mc.io.save_json(tmp_path / "rig.json", rig, names=["a", "b", "c"], status=[0, 5, 0])
+    back, names = mc.io.load_json(path)
+    assert names == ["a", "b", "c"]
+    for field in ("alpha_u", "alpha_v", "u0", "v0", "skew", "R", "t", "dist"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, field)), getattr(rig, field))
+    document = json.loads(path.read_text())
+    assert document["format"] == "mvcalib.rig" and document["version"] == 1
+    assert document["cameras"][1]["alpha_u"] is None and document["cameras"][1]["status"] == 5
+    assert [p.name for p in tmp_path.iterdir()] == ["rig.json"]  # no temporary file left
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{not json", "not a readable JSON"),
+        ('{"format": "other"}', "not an mvcalib rig"),
+        ('{"format": "mvcalib.rig", "version": 99, "cameras": []}', "version 99"),
+        ('{"format": "mvcalib.rig", "version": 1, "cameras": []}', "no cameras"),
+        ('{"format": "mvcalib.rig", "version": 1, "cameras": [{"alpha_u": 1}]}', "malformed"),
+    ],
+    ids=["broken", "foreign", "version", "empty", "missing fields"],
+)
+def test_bad_rig_files_are_refused(tmp_path, content, message):
+    path = tmp_path / "rig.json"
+    path.write_text(content)
+    with pytest.raises(ValueError, match=message):
+        mc.io.load_json(path)
+
+
+def test_a_failed_write_leaves_the_old_rig_file_whole(tmp_path, monkeypatch):
+    path = tmp_path / "rig.json"
+    path.write_text("old contents")
+
+    def broken_replace(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(mc.io.os, "replace", broken_replace)
+    with pytest.raises(OSError, match="disk full"):
+        mc.io.write_atomic(path, "new contents")
+    assert path.read_text() == "old contents"
+    assert [p.name for p in tmp_path.iterdir()] == ["rig.json"]
+
+
+# ---------------------------------------------------------------------------- command line
+def _cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "mvcalib", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+    )
+
+
+def test_cli_calibrate_images_writes_the_rig_and_flags_bad_files(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(10), 2)
+    paths = []
+    for i in range(2):
+        paths.append(tmp_path / f"cam{i}.png")
+        iio.imwrite(paths[-1], render(rig.cameras[i], TARGET, key=i, clutter=3))
+    out = tmp_path / "rig.json"
+    result = _cli("calibrate-images", *paths, "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert "2 of 2 cameras calibrated" in result.stdout
+    assert "[1/2]" in result.stderr and "[2/2]" in result.stderr  # progress, per image
+    cameras, names = mc.io.load_json(out)
+    assert names == [str(p) for p in paths]
+    api = mc.calibrate_images(paths, TARGET)
+    np.testing.assert_allclose(np.asarray(cameras.K), np.asarray(api.cameras.K), rtol=1e-9)
+    truth = np.asarray(rig.cameras.alpha_u)
+    assert np.abs(np.asarray(cameras.alpha_u) / truth - 1).max() < 0.01
+
+    corrupt = tmp_path / "corrupt.png"
+    corrupt.write_bytes(b"GIF89a and then nothing")
+    result = _cli("calibrate-images", paths[0], corrupt, "--out", out, "--quiet")
+    # The work partly failed (exit code 1); the rig is written all the same, quietly.
+    assert result.returncode == 1 and result.stderr == ""
+    document = json.loads(out.read_text())
+    assert [c["status"] for c in document["cameras"]] == [0, int(mc.Status.NOT_LABELLED)]
+    assert "cannot be read" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["calibrate-images", "nowhere.png", "--out", "rig.json"], "no such image file"),
+        (["calibrate-images", "--out", "rig.json"], "required"),
+        (["calibrate-images", "x.png"], "--out"),
+        (["demo", "--bogus"], "unrecognized arguments"),
+    ],
+    ids=["missing file", "no images", "no --out", "bad flag"],
+)
+def test_cli_bad_usage_is_one_line_and_exit_code_2(tmp_path, args, message):
+    result = _cli(*args, cwd=tmp_path)
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "rig.json").exists()
