@@ -25,6 +25,9 @@ for a centroid detector), RMS against the projected true centres (which differ f
 by the perspective bias, also reported), and found / missed / spurious counts. OpenCV's RMS is
 dominated by outliers (elongated dots split over thresholds), hence the median beside it.
 
+The labelling of the detected dots (`mc.label_dots`: which blob is which dot id) is timed
+after mvcalib's detector, and checked against the dot ids known from the rendering.
+
 `--quick` uses 20 views instead of 100 (under a minute on two cores).
 
 Results are printed as a table and written to `benchmarks/results/detect.json`.
@@ -136,7 +139,14 @@ def main(argv=None):
         f"scikit-image {info['scikit-image']}, OpenCV {cv2_version}, {info['cpu_count']} CPUs\n"
     )
     rig = mc.synthetic.random_rig(jax.random.key(SEED), n_views, image_size=IMAGE_SIZE)
-    detectors = {"mvcalib detect_dots": lambda image: detect_dots(image).centroids}
+    last = {}
+
+    def ours(image):
+        last["detection"] = detect_dots(image)
+        return last["detection"].centroids
+
+    detectors = {"mvcalib detect_dots": ours}
+    labelling = dict(times=[], correct=0, flagged=0, wrong=0)
     detectors["OpenCV SimpleBlobDetector"] = opencv
     stats = {name: dict(times=[], e=[], t=[], found=0, missed=0, spurious=0) for name in detectors}
     bias, touching = [], 0
@@ -160,6 +170,18 @@ def main(argv=None):
             s["found"] += n_found
             s["missed"] += n_missed
             s["spurious"] += n_spurious
+            if detect is ours:  # then label the dots: which blob is which dot id
+                start = time.perf_counter()
+                labels = mc.label_dots(last["detection"], target)
+                labelling["times"].append(time.perf_counter() - start)
+                d = np.linalg.norm(ellipse[:, None] - last["detection"].centroids[None], axis=-1)
+                truth = np.where(d.min(1) < MATCH_PX, d.argmin(1), -1)
+                if not labels.ok:
+                    labelling["flagged"] += 1
+                elif (labels.index[labels.mask] == truth[labels.mask]).all():
+                    labelling["correct"] += 1
+                else:
+                    labelling["wrong"] += 1
 
     rows = [
         summarise(name, s["times"], s["e"], s["t"], s["found"], s["missed"], s["spurious"])
@@ -182,6 +204,12 @@ def main(argv=None):
         f"{np.sqrt(np.mean(bias**2)):.4f} px, median {np.median(bias):.4f}, max {bias.max():.4f}"
     )
     print(f"{touching} of {n_views} views have touching dot images (those dots not counted)")
+    label_ms = 1e3 * np.percentile(labelling["times"], [25, 50, 75])
+    print(
+        f"labelling (mc.label_dots after detect_dots): {label_ms[1]:.0f} ms/image median "
+        f"(quartiles {label_ms[0]:.0f}-{label_ms[2]:.0f}); views labelled correctly "
+        f"{labelling['correct']}, flagged {labelling['flagged']}, wrong {labelling['wrong']}"
+    )
     wall = time.perf_counter() - wall
     print(f"total wall time {wall:.1f} s")
 
@@ -204,6 +232,12 @@ def main(argv=None):
             "max": float(bias.max()),
         },
         views_with_touching_dots=touching,
+        labelling={
+            "ms_per_image_median": float(label_ms[1]),
+            "views_correct": labelling["correct"],
+            "views_flagged": labelling["flagged"],
+            "views_wrong": labelling["wrong"],
+        },
         wall_time_s=wall,
         results=rows,
     )
