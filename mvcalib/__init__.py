@@ -37,6 +37,9 @@ from ._report import reprojection_report as reprojection_report
 from ._rotation import nearest_rotation as nearest_rotation
 from ._rotation import rodrigues as rodrigues
 from ._status import Status as Status
+from ._triangulate import Triangulation as Triangulation
+from ._triangulate import reproject as reproject
+from ._triangulate import triangulate as triangulate
 from .targets import Target as Target
 
 __version__ = "0.1.0"

@@ -1,0 +1,188 @@
+"""N-view triangulation against ground truth, OpenCV, and first-order error theory."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import central_difference_check
+
+import mvcalib as mc
+
+TARGET = mc.targets.box_corner_grid(6)  # 108 points on three faces
+
+
+def ring(n_cameras, seed=0, distortion=False):
+    """Cameras all round the target's octant, looking at it from 25-65 degrees of elevation."""
+    rig = mc.synthetic.random_rig(
+        jax.random.key(seed), n_cameras, TARGET, max_angle=40.0, focal=(900.0, 1600.0)
+    )
+    cameras = rig.cameras
+    if distortion:
+        dist = jnp.broadcast_to(jnp.array([-0.2, 0.1, 1e-3, 1e-3, 0.0]), (n_cameras, 5))
+        cameras = mc.Camera.from_matrices(cameras.K, cameras.R, cameras.t, dist)
+    return cameras, jnp.asarray(TARGET.points)
+
+
+@pytest.mark.parametrize("distortion", [False, True], ids=["pinhole", "distorted"])
+def test_noise_free_points_come_back_exactly(distortion):
+    cameras, world = ring(6, seed=1, distortion=distortion)
+    pixels = cameras.project(world)
+    out = mc.triangulate(cameras, pixels)
+    np.testing.assert_allclose(out.points, world, rtol=0, atol=1e-9 * 200)  # 1e-9 of the target
+    assert np.asarray(out.ok).all() and (np.asarray(out.views) == 6).all()
+    assert float(out.rms.max()) < 1e-8
+    # Every pair of views alone also gives the point.
+    for a, b in [(0, 1), (2, 5)]:
+        pair = mc.triangulate(cameras[jnp.array([a, b])], pixels[jnp.array([a, b])])
+        np.testing.assert_allclose(pair.points, world, atol=1e-9 * 200)
+
+
+def test_two_views_agree_with_opencv():
+    cameras, world = ring(2, seed=2)
+    P = np.asarray(cameras.projection_matrix())
+    pixels = np.asarray(cameras.project(world))
+    for noise in (0.0, 0.5):
+        px = pixels + noise * np.random.default_rng(2).standard_normal(pixels.shape)
+        X = cv2.triangulatePoints(P[0], P[1], px[0].T.copy(), px[1].T.copy())
+        theirs = (X[:3] / X[3]).T
+        ours = mc.triangulate(cameras, px)
+        if noise == 0:
+            np.testing.assert_allclose(ours.points, theirs, rtol=0, atol=1e-8)
+            continue
+        # With noise the two linear solutions differ by how the equations are weighted (OpenCV:
+        # raw pixel rows; mvcalib: normalised rows weighted by focal length). Both are within
+        # the noise of the truth, and ours reprojects no worse.
+        err = lambda X: np.linalg.norm(X - np.asarray(world), axis=-1)  # noqa: E731
+        assert np.median(err(np.asarray(ours.points))) < 1.1 * np.median(err(theirs))
+        rms_theirs = np.sqrt(np.mean(np.sum((cameras.project(theirs) - px) ** 2, -1)))
+        rms_ours = np.sqrt(np.mean(np.asarray(ours.rms) ** 2))
+        assert rms_ours <= 1.001 * rms_theirs
+
+
+def test_error_falls_as_views_are_added_like_one_over_root_n():
+    cameras, world = ring(32, seed=3)
+    pixels = cameras.project(world)
+    noise = 0.5 * jax.random.normal(jax.random.key(3), (200,) + pixels.shape)  # 200 trials
+    curve = {}
+    for k in (2, 4, 8, 16, 32):
+        out = mc.triangulate(cameras[:k], pixels[:k] + noise[:, :k])  # point sets: the trials
+        curve[k] = float(jnp.sqrt(jnp.mean(jnp.sum((out.points - world) ** 2, -1))))
+    print("\n3-D RMS error (mm) by number of views:", {k: round(v, 4) for k, v in curve.items()})
+    ks = sorted(curve)
+    assert all(curve[a] > curve[b] for a, b in zip(ks, ks[1:]))
+    # From 4 to 32 views (8x) the error should fall by about sqrt(8) = 2.8 (random geometry
+    # makes the first views count differently, hence the band).
+    assert 2.0 < curve[4] / curve[32] < 4.0
+
+
+def test_jacobian_gives_the_covariance_monte_carlo_confirms():
+    cameras, world = ring(4, seed=4)
+    pixels = cameras.project(world[:5])
+    sigma = 0.3
+
+    def points(px):
+        return mc.triangulate(cameras, px).points
+
+    J = jax.jacfwd(points)(pixels)  # (5, 3, C, 5, 2)
+    J = J.reshape(5, 3, -1)
+    predicted = sigma**2 * jnp.einsum("pik,pjk->pij", J, J)  # (5, 3, 3)
+    noise = sigma * jax.random.normal(jax.random.key(4), (4000,) + pixels.shape)
+    samples = mc.triangulate(cameras, pixels + noise).points  # (4000, 5, 3)
+    d = samples - samples.mean(0)
+    observed = jnp.einsum("spi,spj->pij", d, d) / (len(samples) - 1)
+    ratio = jnp.trace(observed, axis1=-2, axis2=-1) / jnp.trace(predicted, axis1=-2, axis2=-1)
+    print("\nMonte Carlo / first-order variance per point:", np.round(np.asarray(ratio), 3))
+    assert np.all(np.abs(np.asarray(ratio) - 1) < 0.1)
+
+
+def test_hidden_views_have_no_influence_even_nan():
+    cameras, world = ring(5, seed=5)
+    pixels = np.array(cameras.project(world)) + 0.3 * np.random.default_rng(5).standard_normal(
+        (5, len(world), 2)
+    )
+    mask = np.ones(pixels.shape[:2], bool)
+    mask[2] = False
+    poisoned = pixels.copy()
+    poisoned[2] = np.nan
+    with_mask = mc.triangulate(cameras, poisoned, mask)
+    without = mc.triangulate(cameras[jnp.array([0, 1, 3, 4])], pixels[[0, 1, 3, 4]])
+    np.testing.assert_allclose(with_mask.points, without.points, rtol=1e-12, atol=1e-10)
+    # NaN pixels are hidden by default.
+    np.testing.assert_allclose(mc.triangulate(cameras, poisoned).points, without.points, atol=1e-10)
+    g = jax.grad(lambda px: mc.triangulate(cameras, px, mask).points.sum())(jnp.asarray(pixels))
+    assert np.all(np.asarray(g)[2] == 0)
+
+
+def test_diagnostics_flag_what_cannot_be_trusted():
+    cameras, world = ring(3, seed=6)
+    pixels = np.array(cameras.project(world))
+    mask = np.ones(pixels.shape[:2], bool)
+    mask[1:, 0] = False  # point 0 seen once
+    out = mc.triangulate(cameras, pixels, mask)
+    assert int(out.views[0]) == 1 and not bool(out.ok[0]) and np.isnan(out.points[0]).all()
+    assert np.asarray(out.ok[1:]).all() and (np.asarray(out.angle[1:]) > 5).all()
+    # Two nearly coincident cameras: a tiny ray angle, not ok with the default 1 degree.
+    shifted = mc.Camera(
+        cameras.alpha_u[0], cameras.alpha_v[0], cameras.u0[0], cameras.v0[0], cameras.R[0],
+        cameras.t[0] + jnp.array([0.5, 0.0, 0.0]),
+    )  # fmt: skip
+    pair = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), cameras[0], shifted)
+    narrow = mc.triangulate(pair, pair.project(world))
+    assert (np.asarray(narrow.angle) < 1).all() and not np.asarray(narrow.ok).any()
+
+
+def test_refinement_minimises_reprojection_error_with_distortion():
+    cameras, world = ring(4, seed=7, distortion=True)
+    pixels = cameras.project(world)
+    noisy = pixels + 0.5 * jax.random.normal(jax.random.key(7), pixels.shape)
+    linear = mc.triangulate(cameras, noisy)
+    refined = mc.triangulate(cameras, noisy, refine=True)
+    assert np.all(np.asarray(refined.rms) <= np.asarray(linear.rms) + 1e-9)
+    assert float(jnp.mean(refined.rms)) < 0.99 * float(jnp.mean(linear.rms))
+    # At the optimum the reprojection error's gradient in the point vanishes.
+    g = jax.vmap(
+        jax.grad(lambda X, px: jnp.sum((cameras.project(X[None])[:, 0] - px) ** 2)),
+        in_axes=(0, 1),
+    )(refined.points, noisy)
+    assert float(jnp.abs(g).max()) < 1e-6
+
+
+def test_point_sets_batch_like_separate_calls_and_gradients_are_right():
+    cameras, world = ring(3, seed=8)
+    pixels = cameras.project(world[:10])
+    sets = pixels + 0.2 * jax.random.normal(jax.random.key(8), (4,) + pixels.shape)
+    batched = mc.triangulate(cameras, sets)
+    assert batched.points.shape == (4, 10, 3) and batched.ok.shape == (4, 10)
+    for s in range(4):
+        np.testing.assert_allclose(
+            batched.points[s], mc.triangulate(cameras, sets[s]).points, rtol=1e-12
+        )
+    central_difference_check(lambda px: mc.triangulate(cameras, px).points, sets[0], eps=1e-5)
+
+
+def test_reproject_predicts_every_view():
+    cameras, world = ring(3, seed=9)
+    pixels = cameras.project(world)
+    out = mc.triangulate(cameras, pixels)
+    np.testing.assert_allclose(mc.reproject(cameras, out), pixels, atol=1e-8)
+    report = mc.reprojection_report(cameras, out.points, pixels)
+    assert float(report.rms.max()) < 1e-8
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda c, p: mc.triangulate(c[0], p[0]), "rig"),
+        (lambda c, p: mc.triangulate(c, p[:2]), "C = 3"),
+        (lambda c, p: mc.triangulate(c, p, np.ones(p.shape[:2], int)), "boolean"),
+        (lambda c, p: mc.triangulate(c, p.astype(np.complex64)), "real floating"),
+        (lambda c, p: mc.triangulate(c[:1], p[:1]), "at least 2 cameras"),
+    ],
+    ids=["one camera", "wrong C", "int mask", "complex", "single view"],
+)
+def test_bad_input_raises_value_error(call, message):
+    cameras, world = ring(3, seed=10)
+    pixels = np.asarray(cameras.project(world))
+    with pytest.raises(ValueError, match=message):
+        call(cameras, pixels)
