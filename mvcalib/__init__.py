@@ -6,7 +6,9 @@ The public API is what this module re-exports; everything else is private.
 from . import io as io
 from . import synthetic as synthetic
 from . import targets as targets
+from ._bundle import BundleAdjustment as BundleAdjustment
 from ._bundle import RigRefinement as RigRefinement
+from ._bundle import bundle_adjust as bundle_adjust
 from ._bundle import refine_rig as refine_rig
 from ._camera import Camera as Camera
 from ._camera import distort as distort

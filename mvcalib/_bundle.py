@@ -3,6 +3,9 @@ the target in the global frame (the registration), and optionally the 3-D points
 
 from __future__ import annotations
 
+import dataclasses
+import sys
+import time
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -13,7 +16,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _validate
+from . import _triangulate, _validate
 from ._camera import Camera
 from ._refine import (
     _RESULT_MESSAGES,
@@ -271,3 +274,133 @@ def _with_intrinsics_of(cameras: Camera, i: int) -> Camera:
         cameras,
         tuple(jnp.broadcast_to(getattr(cameras, n)[i], getattr(cameras, n).shape) for n in names),
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class BundleAdjustment:
+    """The result of `bundle_adjust`.
+
+    - `cameras`: the refined rig.
+    - `rounds`: one dict per round: the outlier `threshold` (px), the `points` and
+      `observations` used, the reprojection RMS `before` and `after` (px, over those
+      observations), LM `iterations`, and `seconds`.
+    - `refinement`: the last round's `RigRefinement`.
+    """
+
+    cameras: Camera
+    rounds: list
+    refinement: RigRefinement
+
+
+def bundle_adjust(
+    cameras: Camera,
+    pixels: Float[Array, "C N 2"],
+    mask: Bool[Array, "C N"] | None = None,
+    *,
+    thresholds: Sequence[float] = (50.0, 20.0),
+    max_points: int = 500,
+    min_views: int = 3,
+    distortion: Sequence[str] | str = ("k1", "k2"),
+    fix: Sequence[str] | str = ("u0", "v0", "skew"),
+    loss: Huber | Cauchy | None | str = "default",
+    max_steps: int = 40,
+    seed: int = 0,
+    progress: bool = False,
+) -> BundleAdjustment:
+    """Refine a rig from 2-D tracks alone (no calibration target): bundle adjustment in rounds.
+
+    Each round triangulates a sample of the tracks with the current cameras (`triangulate`),
+    drops the observations that reproject further than the round's threshold (wrong detections),
+    and refines the cameras and those points as one least-squares problem (`refine_rig` with
+    free points and a robust loss). Decreasing thresholds let the first round fix gross
+    calibration errors and the later ones fit the good observations. The frame and scale stay
+    those of the starting rig: four of the points are anchored, softly, where they were first
+    triangulated.
+
+    **Arguments:**
+
+    - `cameras`: the starting rig `(C,)`.
+    - `pixels`, `mask`: tracks `(C, N, 2)`; NaN (or `mask` False) where a camera did not see it.
+    - `thresholds`: outlier thresholds in pixels, one round each.
+    - `max_points`: how many tracks (seen by >= `min_views` cameras) to sample; bundle
+      adjustment needs far fewer points than a recording has to fix 12 cameras.
+    - `distortion`, `fix`, `loss`, `max_steps`: as for `refine_rig` (per round); the default
+      loss is `Huber(3.0)`: observations a few pixels off still count, gross ones barely.
+    - `seed`: for the sample of tracks.
+    - `progress`: print one line per round to stderr.
+
+    **Example:**
+
+    ```python
+    >>> import jax, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 4, mc.targets.box_corner_grid(4))
+    >>> noisy = rig.pixels + 0.3 * np.random.default_rng(0).standard_normal(rig.pixels.shape)
+    >>> out = mc.bundle_adjust(rig.cameras, noisy, distortion=(), thresholds=(5.0,))
+    >>> out.rounds[0]["after"] < 0.4
+    True
+
+    ```
+    """
+    loss = Huber(3.0) if isinstance(loss, str) and loss == "default" else loss
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if pixels.ndim != 3 or pixels.shape[-1] != 2 or (pixels.shape[0],) != cameras.batch_shape:
+        raise ValueError(
+            f"`pixels` must be (C, N, 2) tracks for the rig's {cameras.batch_shape} cameras; "
+            f"got {pixels.shape}."
+        )
+    seen = np.all(np.isfinite(pixels), -1)
+    if mask is not None:
+        seen &= np.asarray(mask, dtype=bool)
+    candidates = np.flatnonzero(seen.sum(0) >= min_views)
+    if len(candidates) < 4:
+        raise ValueError(f"only {len(candidates)} tracks are seen by >= {min_views} cameras.")
+    rng = np.random.default_rng(seed)
+    ids = np.sort(rng.choice(candidates, min(max_points, len(candidates)), replace=False))
+    px, seen = pixels[:, ids], seen[:, ids]
+    rounds, refinement = [], None
+    for threshold in thresholds:
+        start = time.perf_counter()
+        points = _triangulate.triangulate(cameras, np.where(seen[..., None], px, np.nan))
+        error = np.linalg.norm(np.asarray(cameras.project(points.points)) - px, axis=-1)
+        use = seen & (error < threshold)
+        keep = (use.sum(0) >= 2) & np.asarray(points.ok)
+        world = np.asarray(points.points)[keep]
+        spread = float(np.sqrt(np.mean(np.sum((world - world.mean(0)) ** 2, -1))))
+        refinement = refine_rig(
+            cameras,
+            world,
+            np.nan_to_num(px[:, keep]),
+            use[:, keep],
+            points="free",
+            anchors=(np.arange(4), world[:4]),
+            anchor_sigma=1e-3 * spread,
+            distortion=distortion,
+            fix=fix,
+            loss=loss,
+            max_steps=max_steps,
+        )
+        cameras = refinement.cameras
+        summary = {
+            "threshold": float(threshold),
+            "points": int(keep.sum()),
+            "observations": int(use[:, keep].sum()),
+            "before": float(_pooled(refinement.rms_before, use[:, keep])),
+            "after": float(_pooled(refinement.rms_after, use[:, keep])),
+            "iterations": int(refinement.iterations),
+            "seconds": time.perf_counter() - start,
+        }
+        rounds.append(summary)
+        if progress:
+            print(
+                f"bundle_adjust: threshold {threshold:g} px, {summary['points']} points, "
+                f"RMS {summary['before']:.2f} -> {summary['after']:.2f} px "
+                f"({summary['iterations']} steps, {summary['seconds']:.0f} s)",
+                file=sys.stderr,
+            )
+    return BundleAdjustment(cameras=cameras, rounds=rounds, refinement=refinement)
+
+
+def _pooled(rms_per_camera, mask):
+    """The RMS over all observations from per-camera RMS values and counts."""
+    n = np.asarray(mask).sum(1)
+    return np.sqrt(np.sum(np.asarray(rms_per_camera) ** 2 * n) / max(n.sum(), 1))

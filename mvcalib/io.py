@@ -19,7 +19,7 @@ import numpy as np
 
 from ._camera import Camera
 
-__all__ = ["save_json", "load_json", "write_atomic"]
+__all__ = ["save_json", "load_json", "write_atomic", "load_aniposelib"]
 
 FORMAT = "mvcalib.rig"
 VERSION = 1
@@ -141,3 +141,36 @@ def load_json(path) -> tuple[Camera, list[str]]:
     stacked = {k: jnp.asarray(np.stack(v)) for k, v in fields.items()}
     names = [str(e.get("name", f"cam_{i}")) for i, e in enumerate(cameras)]
     return Camera(**stacked), names
+
+
+def load_aniposelib(path) -> tuple[Camera, list[str]]:
+    """Load an aniposelib / anipose calibration file (TOML): `(cameras, names)`.
+
+    Each `[cam_i]` table holds `matrix` (K), `distortions` (OpenCV's k1 k2 p1 p2 k3),
+    `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
+    the file's order of `cam_0, cam_1, ...`. Needs Python >= 3.11 (`tomllib`).
+    """
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
+    from ._rotation import rodrigues
+
+    path = pathlib.Path(path)
+    try:
+        document = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
+    keys = sorted((k for k in document if k.startswith("cam_")), key=lambda k: int(k[4:]))
+    if not keys:
+        raise ValueError(f"{path}: no [cam_N] tables.")
+    try:
+        K = np.array([document[k]["matrix"] for k in keys], dtype=float)
+        dist = np.array([document[k].get("distortions", [0.0] * 5) for k in keys], dtype=float)
+        rvec = np.array([document[k]["rotation"] for k in keys], dtype=float)
+        t = np.array([document[k]["translation"] for k in keys], dtype=float)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: a camera table is malformed ({error}).") from None
+    dist = np.pad(dist, ((0, 0), (0, 5 - dist.shape[1])))
+    names = [str(document[k].get("name", k)) for k in keys]
+    return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist), names
