@@ -32,9 +32,9 @@ def test_oxford_house_dlt_fits_as_well_as_the_published_cameras():
     rms_pub = np.asarray(mc.reprojection_report(published, world, pixels, mask).rms)
     rms_ours = np.asarray(result.report.rms)
     # The published P come from a bundle adjustment of the same corners (0.39-0.84 px RMS);
-    # the algebraic DLT optimum lands within 1 % of it on every view.
+    # the algebraic DLT optimum lands within 0.5 % of it on every view (measured: 0.02-0.23 %).
     assert np.all(rms_pub > 0.3) and np.all(rms_pub < 0.9)
-    assert np.all(rms_ours / rms_pub < 1.01), rms_ours / rms_pub
+    assert np.all(rms_ours / rms_pub <= 1.005), rms_ours / rms_pub
     assert np.all(np.asarray(mask.sum(1)) >= 100)
     # and the cameras are the same cameras: centres within 2 % of the distance to the scene
     centre_err = np.linalg.norm(np.asarray(result.cameras.center - published.center), axis=-1)
