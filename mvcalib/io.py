@@ -14,12 +14,16 @@ import os
 import pathlib
 import tempfile
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera
 
-__all__ = ["save_json", "load_json", "write_atomic", "load_aniposelib"]
+__all__ = [
+    "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
+    "write_atomic", "load_aniposelib",
+]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
 VERSION = 1
@@ -174,3 +178,293 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     dist = np.pad(dist, ((0, 0), (0, 5 - dist.shape[1])))
     names = [str(document[k].get("name", k)) for k in keys]
     return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist), names
+
+
+# ---------------------------------------------------------------------------- OpenCV YAML
+def _opencv_matrix(name: str, a, indent: str) -> list[str]:
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    values = ", ".join(repr(float(v)) for v in a.ravel())  # repr: shortest exact round trip
+    return [
+        f"{indent}{name}: !!opencv-matrix",
+        f"{indent}   rows: {a.shape[0]}",
+        f"{indent}   cols: {a.shape[1]}",
+        f"{indent}   dt: d",
+        f"{indent}   data: [ {values} ]",
+    ]
+
+
+def _opencv_camera(camera: Camera, indent: str, image_size) -> list[str]:
+    lines = []
+    if image_size is not None:
+        width, height = (int(v) for v in image_size)
+        lines += [f"{indent}image_width: {width}", f"{indent}image_height: {height}"]
+    lines += _opencv_matrix("camera_matrix", camera.K, indent)
+    lines += _opencv_matrix("distortion_coefficients", np.asarray(camera.dist)[None], indent)
+    lines += _opencv_matrix("R", camera.R, indent)
+    lines += _opencv_matrix("T", np.asarray(camera.t)[:, None], indent)
+    return lines
+
+
+def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathlib.Path:
+    """Save cameras as OpenCV FileStorage YAML, readable by `cv2.FileStorage`, atomically.
+
+    One camera is written at the top level with OpenCV's usual keys: `camera_matrix` (K),
+    `distortion_coefficients` (1 x 5: k1 k2 p1 p2 k3), `R` (world to camera) and `T` (3 x 1),
+    with `image_width`/`image_height` if `image_size=(width, height)` is given. A rig is
+    written as one map per camera (`cam_0`, ... or `names`) holding those keys, and `cameras`
+    listing the names. Numbers are written with Python's shortest exact representation, so
+    reading back (with `load_opencv` or `cv2.FileStorage`) gives the same doubles.
+
+    **Example:**
+
+    ```python
+    >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    >>> path = mc.io.save_opencv(pathlib.Path(tempfile.mkdtemp()) / "rig.yml", rig)
+    >>> back, names = mc.io.load_opencv(path)
+    >>> bool(np.array_equal(back.K, rig.K)), names
+    (True, ['cam_0', 'cam_1'])
+
+    ```
+    """
+    lines = ["%YAML:1.0", "---"]
+    if cameras.batch_shape == ():
+        lines += _opencv_camera(cameras, "", image_size)
+    else:
+        if len(cameras.batch_shape) != 1:
+            raise ValueError(f"save one camera axis; got a rig of shape {cameras.batch_shape}.")
+        n = cameras.batch_shape[0]
+        names = [f"cam_{i}" for i in range(n)] if names is None else [str(s) for s in names]
+        if len(names) != n or any(not s.isidentifier() for s in names):
+            raise ValueError(f"need {n} names made of letters, digits and '_'; got {names}.")
+        lines.append("cameras: [ " + ", ".join(f'"{s}"' for s in names) + " ]")
+        for i, name in enumerate(names):
+            lines.append(f"{name}:")
+            lines += _opencv_camera(cameras[i], "   ", image_size)
+    return write_atomic(path, "\n".join(lines) + "\n")
+
+
+def load_opencv(path) -> tuple[Camera, list[str]]:
+    """Load a file written by `save_opencv` (or any FileStorage YAML with `camera_matrix`,
+    `distortion_coefficients`, `R`, `T`, at the top level or in per-camera maps listed by
+    `cameras`): `(cameras, names)`; a single camera comes back with no camera axis."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot be read ({error})") from None
+    tree = _parse_opencv_yaml(text, path)
+    if "cameras" in tree:
+        names = tree["cameras"]
+        maps = [tree.get(n) for n in names]
+    else:
+        names, maps = ["camera"], [tree]
+    fields = []
+    for name, node in zip(names, maps):
+        try:
+            K, dist, R, T = (
+                node[k] for k in ("camera_matrix", "distortion_coefficients", "R", "T")
+            )
+            fields.append((K.reshape(3, 3), dist.reshape(-1), R.reshape(3, 3), T.reshape(3)))
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise ValueError(
+                f"{path}: camera {name!r} lacks camera_matrix, "
+                "distortion_coefficients, R or T (3x3, 1x5, 3x3, 3x1)."
+            ) from None
+    K, dist, R, T = (np.stack(f) for f in zip(*fields))
+    dist = np.pad(dist, ((0, 0), (0, max(0, 5 - dist.shape[1]))))[:, :5]
+    cameras = Camera.from_matrices(
+        jnp.asarray(K), jnp.asarray(R), jnp.asarray(T), jnp.asarray(dist)
+    )
+    if "cameras" not in tree:
+        cameras = cameras[0]
+    return cameras, list(names)
+
+
+def _parse_opencv_yaml(text: str, path) -> dict:
+    """The small YAML subset FileStorage writes: maps by indentation, `!!opencv-matrix` nodes
+    (whose `data` may run over several lines), scalars and one-line sequences."""
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith(("%", "---"))]
+    root: dict = {}
+    stack = [(-1, root)]
+    matrix = None  # the open matrix: {"indent", "parent", "key", "fields"}
+    for line in lines:
+        indent = len(line) - len(line.lstrip())
+        if matrix is not None and indent > matrix["indent"]:
+            if ":" in line:
+                key, _, value = line.strip().partition(":")
+                matrix["fields"][key] = value.strip()
+                matrix["last"] = key
+            else:  # a continuation of the data list
+                matrix["fields"][matrix["last"]] += " " + line.strip()
+            continue
+        if matrix is not None:
+            _finish_matrix(matrix, path)
+            matrix = None
+        key, _, value = line.strip().partition(":")
+        value = value.strip()
+        while indent <= stack[-1][0]:
+            stack.pop()
+        parent = stack[-1][1]
+        if value.startswith("!!opencv-matrix"):
+            matrix = {"indent": indent, "parent": parent, "key": key, "fields": {}, "last": None}
+        elif value == "":
+            parent[key] = {}
+            stack.append((indent, parent[key]))
+        elif value.startswith("["):
+            parent[key] = [v.strip().strip('"') for v in value.strip("[] ").split(",") if v.strip()]
+        else:
+            parent[key] = value.strip('"')
+    if matrix is not None:
+        _finish_matrix(matrix, path)
+    return root
+
+
+def _finish_matrix(matrix, path):
+    fields, key = matrix["fields"], matrix["key"]
+    try:
+        data = [float(v) for v in fields["data"].strip("[] ").split(",") if v.strip()]
+        matrix["parent"][key] = np.array(data).reshape(int(fields["rows"]), int(fields["cols"]))
+    except (KeyError, ValueError) as error:
+        raise ValueError(f"{path}: opencv-matrix {key!r} is malformed ({error}).") from None
+
+
+# ---------------------------------------------------------------------------- COLMAP text
+def _quaternion(R: np.ndarray) -> np.ndarray:
+    """(w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method: the largest pivot)."""
+    m = np.asarray(R, dtype=float)
+    trace = np.trace(m)
+    pivots = [trace, m[0, 0], m[1, 1], m[2, 2]]
+    k = int(np.argmax(pivots))
+    if k == 0:
+        r = np.sqrt(1.0 + trace)
+        q = [r / 2, (m[2, 1] - m[1, 2]) / (2 * r), (m[0, 2] - m[2, 0]) / (2 * r),
+             (m[1, 0] - m[0, 1]) / (2 * r)]  # fmt: skip
+    else:
+        i = k - 1
+        j, l = (i + 1) % 3, (i + 2) % 3
+        r = np.sqrt(1.0 + m[i, i] - m[j, j] - m[l, l])
+        v = np.zeros(3)
+        v[i] = r / 2
+        v[j] = (m[j, i] + m[i, j]) / (2 * r)
+        v[l] = (m[l, i] + m[i, l]) / (2 * r)
+        q = [(m[l, j] - m[j, l]) / (2 * r), *v]
+    q = np.asarray(q)
+    return q if q[0] >= 0 else -q
+
+
+def _rotation(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.Path:
+    """Export a rig as a COLMAP text model: `cameras.txt`, `images.txt`, empty `points3D.txt`.
+
+    Each camera becomes one COLMAP camera (model `OPENCV`: fx fy cx cy k1 k2 p1 p2, or
+    `FULL_OPENCV` when k3 is not zero) and one image (`names`, default `cam_i.png`) with its
+    pose as COLMAP's world-to-camera quaternion and translation. COLMAP puts the pixel origin at
+    the corner of the first pixel, mvcalib at its centre, so `cx = u0 + 0.5`. COLMAP has no
+    skew: a camera with skew is refused. Files are written atomically.
+
+    **Example:**
+
+    ```python
+    >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    >>> folder = mc.io.save_colmap(tempfile.mkdtemp(), rig, (1000, 1100))
+    >>> back, names = mc.io.load_colmap(folder)
+    >>> bool(np.allclose(back.R, rig.R, atol=1e-14)), names
+    (True, ['cam_0.png', 'cam_1.png'])
+
+    ```
+    """
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
+    if rig.batch_shape == ():
+        rig = jax.tree_util.tree_map(lambda a: a[None], rig)
+    if len(rig.batch_shape) != 1:
+        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    n = rig.batch_shape[0]
+    if np.any(rig.skew != 0):
+        raise ValueError("COLMAP's camera models have no skew; refine with skew=False first.")
+    names = [f"cam_{i}.png" for i in range(n)] if names is None else [str(s) for s in names]
+    if len(names) != n or any(any(c.isspace() for c in s) or not s for s in names):
+        raise ValueError(f"need {n} image names without spaces; got {names}.")
+    width, height = (int(v) for v in image_size)
+    cams = ["# Camera list with one line of data per camera:",
+            "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]  # fmt: skip
+    imgs = ["# Image list with two lines of data per image:",
+            "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+            "#   POINTS2D[] as (X, Y, POINT3D_ID)"]  # fmt: skip
+    for i in range(n):
+        k1, k2, p1, p2, k3 = rig.dist[i]
+        params = [rig.alpha_u[i], rig.alpha_v[i], rig.u0[i] + 0.5, rig.v0[i] + 0.5, k1, k2, p1, p2]
+        model = "OPENCV"
+        if k3 != 0:
+            model, params = "FULL_OPENCV", [*params, k3, 0.0, 0.0, 0.0]
+        cams.append(f"{i + 1} {model} {width} {height} " + " ".join(repr(float(v)) for v in params))
+        pose = [*_quaternion(rig.R[i]), *rig.t[i]]
+        imgs.append(f"{i + 1} " + " ".join(repr(float(v)) for v in pose) + f" {i + 1} {names[i]}")
+        imgs.append("")
+    write_atomic(folder / "cameras.txt", "\n".join(cams) + "\n")
+    write_atomic(folder / "images.txt", "\n".join(imgs) + "\n")
+    write_atomic(folder / "points3D.txt", "# 3D point list (empty: cameras only)\n")
+    return folder
+
+
+def load_colmap(folder) -> tuple[Camera, list[str]]:
+    """Read a COLMAP text model's cameras and images (models `PINHOLE`, `OPENCV`, `FULL_OPENCV`,
+    `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`): one mvcalib camera per image, `(cameras,
+    image names)`, in the order of `images.txt`."""
+    folder = pathlib.Path(folder)
+    try:
+        cam_lines = _data_lines(folder / "cameras.txt")
+        img_lines = _data_lines(folder / "images.txt")
+    except OSError as error:
+        raise ValueError(f"{folder}: not a COLMAP text model ({error})") from None
+    intrinsics = {}
+    for line in cam_lines:
+        f = line.split()
+        model, p = f[1], [float(v) for v in f[4:]]
+        dist = [0.0] * 5
+        if model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
+            fx, fy, cx, cy = p[:4]
+            if model != "PINHOLE":
+                dist[:4] = p[4:8]
+            if model == "FULL_OPENCV":
+                if any(p[9:12]):
+                    raise ValueError(f"{folder}: camera {f[0]} uses k4-k6, which mvcalib lacks.")
+                dist[4] = p[8]
+        elif model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+            fx = fy = p[0]
+            cx, cy = p[1:3]
+            dist[: len(p) - 3] = p[3:]
+        else:
+            raise ValueError(f"{folder}: camera model {model} is not supported.")
+        intrinsics[f[0]] = (fx, fy, cx - 0.5, cy - 0.5, dist)
+    fields, names = [], []
+    for line in img_lines[::2]:  # every image has a second line of 2-D points
+        f = line.split()
+        if len(f) < 10 or f[8] not in intrinsics:
+            raise ValueError(f"{folder}: malformed images.txt line: {line!r}")
+        fx, fy, cx, cy, dist = intrinsics[f[8]]
+        q, t = [float(v) for v in f[1:5]], [float(v) for v in f[5:8]]
+        fields.append((fx, fy, cx, cy, _rotation(q), t, dist))
+        names.append(f[9])
+    if not fields:
+        raise ValueError(f"{folder}: images.txt lists no images.")
+    fx, fy, cx, cy, R, t, dist = (np.asarray(v, dtype=float) for v in zip(*fields))
+    return Camera(fx, fy, cx, cy, R, t, dist=dist), names
+
+
+def _data_lines(path: pathlib.Path) -> list[str]:
+    lines = path.read_text().splitlines()
+    if path.name == "images.txt":  # keep empty 2-D point lines: they pair with image lines
+        return [ln for ln in lines if not ln.startswith("#")]
+    return [ln for ln in lines if ln.strip() and not ln.startswith("#")]

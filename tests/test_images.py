@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import equinox as eqx
 import imageio.v3 as iio
 import jax
 import numpy as np
@@ -84,6 +85,30 @@ def test_bad_images_are_flagged_and_the_good_ones_calibrated_as_if_alone(tmp_pat
         result.raise_if_failed()
     with pytest.raises(mc.CalibrationError):
         mc.calibrate_images(good + bad[:1], TARGET, strict=True)
+
+
+def test_removing_the_perspective_bias_of_the_dots_brings_the_cameras_closer():
+    rig = mc.synthetic.random_rig(jax.random.key(11), 4)
+    photos = [render(rig.cameras[i], TARGET, key=i) for i in range(4)]
+    raw = mc.calibrate_images(photos, TARGET, bias_iterations=0)
+    corrected = mc.calibrate_images(photos, TARGET)
+    truth = np.asarray(rig.cameras.projection_matrix())
+
+    def errors(result):
+        cameras = result.cameras
+        focal = np.abs(np.asarray(cameras.alpha_u) / np.asarray(rig.cameras.alpha_u) - 1)
+        centre = np.linalg.norm(np.asarray(cameras.center - rig.cameras.center), axis=-1)
+        return focal, centre
+
+    (f0, c0), (f1, c1) = errors(raw), errors(corrected)
+    print(
+        f"\nfocal error {np.round(100 * f0, 3)} % -> {np.round(100 * f1, 3)} %, "
+        f"centre error {np.round(c0, 3)} -> {np.round(c1, 3)} mm"
+    )
+    assert truth.shape == (4, 3, 4) and corrected.ok.all()
+    assert f1.mean() < 0.5 * f0.mean() and c1.mean() < 0.5 * c0.mean()
+    # What is left is the centroids' own noise: Table I on the corrected centroids.
+    assert float(corrected.calibration.report.rms.max()) < 0.1
 
 
 def test_colour_and_16_bit_photographs_give_the_same_cameras():
@@ -214,3 +239,65 @@ def test_cli_bad_usage_is_one_line_and_exit_code_2(tmp_path, args, message):
     assert message in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "rig.json").exists()
+
+
+def test_opencv_yaml_round_trip_is_exact_and_opencv_reads_the_same_numbers(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    rig = mc.synthetic.random_rig(jax.random.key(12), 3).cameras
+    dist = np.array([[-0.21, 0.093, 1.2e-3, -7e-4, 0.011]] * 3)
+    rig = mc.Camera.from_matrices(rig.K, rig.R, rig.t, dist)
+    path = mc.io.save_opencv(tmp_path / "rig.yml", rig, image_size=(1000, 1100))
+    back, names = mc.io.load_opencv(path)
+    assert names == ["cam_0", "cam_1", "cam_2"]
+    for field in ("K", "R", "t", "dist"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, field)), getattr(rig, field))
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    for i in range(3):
+        node = storage.getNode(f"cam_{i}")
+        np.testing.assert_array_equal(node.getNode("camera_matrix").mat(), np.asarray(rig.K[i]))
+        np.testing.assert_array_equal(node.getNode("R").mat(), np.asarray(rig.R[i]))
+        np.testing.assert_array_equal(node.getNode("T").mat()[:, 0], np.asarray(rig.t[i]))
+        np.testing.assert_array_equal(
+            node.getNode("distortion_coefficients").mat()[0], np.asarray(rig.dist[i])
+        )
+        assert int(node.getNode("image_width").real()) == 1000
+    storage.release()
+    # A file OpenCV writes (one camera, top-level keys, data over several lines) reads back too.
+    written = tmp_path / "opencv.yml"
+    storage = cv2.FileStorage(str(written), cv2.FILE_STORAGE_WRITE)
+    for key, value in (("camera_matrix", np.asarray(rig.K[1])), ("R", np.asarray(rig.R[1])),
+                       ("T", np.asarray(rig.t[1])[:, None]),
+                       ("distortion_coefficients", np.asarray(rig.dist[1])[None])):  # fmt: skip
+        storage.write(key, value)
+    storage.release()
+    single, _ = mc.io.load_opencv(written)
+    assert single.batch_shape == ()
+    np.testing.assert_array_equal(np.asarray(single.K), np.asarray(rig.K[1]))
+    np.testing.assert_array_equal(np.asarray(single.dist), np.asarray(rig.dist[1]))
+    bad = tmp_path / "bad.yml"
+    bad.write_text("%YAML:1.0\n---\ncamera_matrix: 3\n")
+    with pytest.raises(ValueError, match="lacks"):
+        mc.io.load_opencv(bad)
+
+
+def test_colmap_export_round_trips_and_refuses_skew(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(13), 3).cameras
+    rig = mc.Camera.from_matrices(
+        rig.K, rig.R, rig.t, np.array([[-0.2, 0.1, 1e-3, 2e-3, 0.0]] * 2 + [[0.1, 0, 0, 0, 0.05]])
+    )
+    folder = mc.io.save_colmap(tmp_path / "sparse", rig, (1000, 1100), names=["a.png", "b.png",
+                                                                              "c.png"])  # fmt: skip
+    lines = (folder / "cameras.txt").read_text().splitlines()
+    assert lines[2].split()[1] == "OPENCV" and lines[4].split()[1] == "FULL_OPENCV"
+    # COLMAP's pixel origin is the corner of the first pixel: cx = u0 + 0.5.
+    assert float(lines[2].split()[6]) == float(rig.u0[0]) + 0.5
+    back, names = mc.io.load_colmap(folder)
+    assert names == ["a.png", "b.png", "c.png"]
+    for field in ("alpha_u", "alpha_v", "u0", "v0", "dist", "t"):
+        np.testing.assert_allclose(
+            getattr(back, field), getattr(rig, field), rtol=1e-15, atol=1e-12
+        )
+    np.testing.assert_allclose(back.R, rig.R, atol=1e-15)  # through a quaternion
+    skewed = eqx.tree_at(lambda c: c.skew, rig, rig.skew + 0.5)
+    with pytest.raises(ValueError, match="skew"):
+        mc.io.save_colmap(tmp_path / "x", skewed, (1000, 1100))
