@@ -84,7 +84,7 @@ def temple_ring() -> dict:
     K, R, t = values[:, :9].reshape(-1, 3, 3), values[:, 9:18].reshape(-1, 3, 3), values[:, 18:]
     cams = mc.Camera.from_projection(K @ np.concatenate([R, t[..., None]], -1))
     errors = {
-        "K_rel": float(np.abs(np.asarray(cams.K) / K - 1)[K != 0].max()),
+        "K_rel": float(np.abs(np.asarray(cams.K)[K != 0] / K[K != 0] - 1).max()),
         "R_abs": float(np.abs(np.asarray(cams.R) - R).max()),
         "t_abs": float(np.abs(np.asarray(cams.t) - t).max()),
     }

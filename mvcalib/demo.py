@@ -299,11 +299,11 @@ def format_images(demo: ImageDemoResult) -> str:
         "  blur 1 px, noise 3 grey levels, illumination gradient, 3 clutter blobs per image)",
         "",
         "1. Dots detected (binarise, invert, background by opening, subtract, label, keep dots)",
-        "   and labelled from the six large fiducial dots, per snapshot:",
+        "   and labelled from the eight large fiducial dots, per snapshot:",
     ]
     for name, message in zip(demo.result.names, demo.result.messages):
         out.append(f"   {name}: {message}")
-    out += ["", "2. Camera per snapshot from its 19 labelled dots (estimate vs truth)"]
+    out += ["", "2. Camera per snapshot from its labelled dots (estimate vs truth)"]
     cameras = jax.tree_util.tree_map(np.asarray, demo.result.cameras)
     true = scene.local_cameras
     for i in range(len(demo.images)):
@@ -318,8 +318,8 @@ def format_images(demo: ImageDemoResult) -> str:
         out.append(f"   snapshot {i + 1}: pixel ({px[0]:9.3f}, {px[1]:9.3f})")
     spread = np.ptp(demo.unified, axis=0).max()
     out.append(
-        f"   spread {spread:.3f} px (the detected centroids are the dots' ellipse centres, "
-        "which perspective moves by up to ~1 px from the projected dot centres)"
+        f"   spread {spread:.3f} px (centroids corrected for the dots' perspective bias, "
+        "which would otherwise move them by up to a few pixels)"
     )
     if demo.figure is not None:
         out += [
