@@ -88,7 +88,10 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps):
     m = mask & jnp.all(jnp.isfinite(pixels), -1)
     principal = jnp.stack([cameras.u0, cameras.v0], -1)[:, None]
     pixels = jnp.where(m[..., None], pixels, principal)
-    ideal = undistort_points(cameras, pixels)  # (C, N, 2)
+    # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
+    ideal = jax.lax.cond(
+        jnp.any(cameras.dist != 0), lambda p: undistort_points(cameras, p), lambda p: p, pixels
+    )  # (C, N, 2)
     y = (ideal[..., 1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
     x = (ideal[..., 0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
     normalised = jnp.stack([x, y], -1)
