@@ -125,19 +125,16 @@ def _six_point_cameras(world, pixels):
     Tw[:, 3, 3] = 1.0
     Tp_inv = np.array([[1 / sp, 0, cp[0, 0]], [0, 1 / sp, cp[0, 1]], [0, 0, 1]], dtype=float)
     P = Tp_inv @ Pn @ Tw
-    misfit = _project(P, None, world) - pixels
+    misfit = _project(P, world) - pixels
     rms = np.sqrt(np.mean(np.sum(misfit**2, axis=-1), axis=-1))
     return P, np.nan_to_num(rms, nan=np.inf)
 
 
-def _project(P: np.ndarray, world: np.ndarray | None, batched_world=None) -> np.ndarray:
-    """Pixels `(..., M, 2)` of `world (M, 3)` (or of `batched_world (..., M, 3)`, one set per
-    camera) by `P (..., 3, 4)`; NaN behind the camera. The sign of P is chosen so that most
-    points are in front."""
-    if batched_world is None:
-        h = world @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
-    else:
-        h = batched_world @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
+def _project(P: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """Pixels `(..., M, 2)` of `world`, `(M, 3)` or one set per camera `(..., M, 3)`, by
+    `P (..., 3, 4)`; NaN behind the camera. The sign of P is chosen so that most points are in
+    front."""
+    h = world @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
     h = h * np.where(np.sum(np.sign(h[..., 2]), axis=-1) < 0, -1.0, 1.0)[..., None, None]
     with np.errstate(invalid="ignore", divide="ignore"):
         px = h[..., :2] / h[..., 2:]
@@ -182,18 +179,16 @@ def _refined(P, world, blobs, tol, iterations=3):
     return index, P, float(np.sqrt(np.mean(np.sum(residual**2, axis=-1))))
 
 
-def _candidates(detection: Detection, min_ratio: float, max_candidates: int) -> np.ndarray:
+def _candidates(major, distances, min_ratio: float, max_candidates: int) -> np.ndarray:
     """Blobs markedly larger than their neighbours, largest ratio first.
 
     A blob is compared with the second smallest of its six nearest neighbours: near it in the
     image and so (mostly) at about its distance from the camera, and, since fiducials are under
-    half of the dots and never side by side, a small dot.
+    half of the dots and never side by side, a small dot. `distances` is the blobs' distance
+    matrix with an infinite diagonal.
     """
-    centroids, major = detection.centroids, detection.major
-    k = min(6, len(centroids) - 1)
-    d = np.linalg.norm(centroids[:, None] - centroids[None], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    neighbours = np.argsort(d, axis=1)[:, :k]
+    k = min(6, len(major) - 1)
+    neighbours = np.argsort(distances, axis=1)[:, :k]
     reference = np.sort(major[neighbours], axis=1)[:, min(1, k - 1)]
     ratio = major / reference
     order = np.argsort(-ratio, kind="stable")
@@ -282,7 +277,7 @@ def label_dots(
     tol = tolerance * spacing
     max_rms = 0.05 * spacing if max_rms is None else float(max_rms)
 
-    candidates = _candidates(detection, min_ratio, max_candidates)
+    candidates = _candidates(np.asarray(detection.major), d, min_ratio, max_candidates)
     if len(candidates) < 6:
         return Labels.failed(
             M,
