@@ -216,4 +216,4 @@ def reproject(cameras: Camera, points) -> Float[Array, "C N 2"]:
     if isinstance(points, Triangulation):
         points = points.points
     points = _validate.floating("points", points, (None, 3))
-    return cameras.project(jnp.asarray(points)) if points.ndim == 2 else cameras.project(points)
+    return cameras.project(points)

@@ -88,11 +88,9 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
 
     ```
     """
-    single = cameras.batch_shape == ()
-    rig = cameras if not single else Camera(
-        *(jnp.asarray(getattr(cameras, k))[None] for k in ("alpha_u", "alpha_v", "u0", "v0")),
-        R=cameras.R[None], t=cameras.t[None], skew=cameras.skew[None], dist=cameras.dist[None],
-    )  # fmt: skip
+    rig = (
+        jax.tree_util.tree_map(lambda a: a[None], cameras) if cameras.batch_shape == () else cameras
+    )
     if len(rig.batch_shape) != 1:
         raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
     n = rig.batch_shape[0]
