@@ -1,4 +1,4 @@
-"""Saving and loading rigs: versioned JSON, written atomically.
+"""Saving and loading rigs (versioned JSON, OpenCV YAML, COLMAP) and correspondences (CSV, JSON).
 
 A rig file holds one entry per camera (name, intrinsics, `R`, `t`, distortion in OpenCV's order,
 and optionally its calibration status and reprojection RMS). Cameras that failed have `null`
@@ -8,6 +8,7 @@ renamed over it, so an interrupted write never leaves a half-written rig.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -22,7 +23,8 @@ from ._camera import Camera
 
 __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
-    "write_atomic", "load_aniposelib",
+    "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
+    "load_correspondences",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -466,3 +468,302 @@ def _data_lines(path: pathlib.Path) -> list[str]:
     if path.name == "images.txt":  # keep empty 2-D point lines: they pair with image lines
         return [ln for ln in lines if not ln.startswith("#")]
     return [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+
+
+# ---------------------------------------------------------------------------- correspondences
+CORRESPONDENCES = "mvcalib.correspondences"
+_WORLD = ("world_x", "world_y", "world_z")
+_PIXEL = ("pixel_x", "pixel_y")
+_COLUMNS = ("camera", "point", *_WORLD, *_PIXEL)
+
+
+@dataclasses.dataclass(frozen=True)
+class Correspondences:
+    """Which camera saw which point where: what a correspondences file holds.
+
+    **Fields:**
+
+    - `world`: `(P, 3)` the points' world coordinates; None for a file of 2-D tracks only.
+    - `pixels`: `(C, P, 2)` where camera c saw point p, `(x = column, y = row)` with the origin
+      at the centre of the top-left pixel; NaN where unseen.
+    - `mask`: `(C, P)` bool: which camera saw which point.
+    - `cameras`: the C camera names; `points`: the P point names (strings).
+    - `unlabelled`: per camera, `(K, 2)` pixels of detections matched to no point (the dots
+      `mvcalib detect` found but could not label); usually empty.
+
+    `world`, `pixels`, `mask` are what `mvcalib.calibrate` takes.
+    """
+
+    world: np.ndarray | None
+    pixels: np.ndarray
+    mask: np.ndarray
+    cameras: list[str]
+    points: list[str]
+    unlabelled: list[np.ndarray]
+
+
+def save_correspondences(
+    path, world, pixels, mask=None, *, cameras=None, points=None, unlabelled=None
+) -> pathlib.Path:
+    """Save 3-D/2-D correspondences (or 2-D tracks) as CSV or JSON, by the suffix, atomically.
+
+    **Arguments:**
+
+    - `path`: a `.csv` or `.json` file (replaced whole, or not at all).
+    - `world`: `(P, 3)` world points, or None for 2-D tracks without world coordinates.
+    - `pixels`: `(C, P, 2)`: point p as seen by camera c.
+    - `mask`: `(C, P)` bool, which camera saw which point; default: the finite pixels.
+    - `cameras`, `points`: names, default `cam_0, cam_1, ...` and `0, 1, ...`.
+    - `unlabelled`: optional per-camera `(K, 2)` pixels matched to no point.
+
+    The CSV has one row per observation, with the header
+    `camera,point,world_x,world_y,world_z,pixel_x,pixel_y` (no `world_*` columns for tracks).
+    A row with an empty `point` is an unlabelled detection, a row with only a camera name a
+    camera that saw nothing, and a row with an empty `camera` names a point without an
+    observation (written first for every point when the observations alone would not give
+    the points' order, or miss a point no camera saw), so that reading back gives the same
+    arrays. The JSON holds the same as arrays: `cameras`,
+    `points`, `world` `(P, 3)` and `pixels` `(C, P, 2)` with `null` where unseen. Numbers are
+    written with Python's shortest exact representation: reading back gives the same doubles.
+
+    **Example:**
+
+    ```python
+    >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.3)
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "points.csv"
+    >>> _ = mc.io.save_correspondences(path, rig.world, rig.pixels, rig.mask)
+    >>> c = mc.io.load_correspondences(path)
+    >>> bool(np.array_equal(c.pixels, rig.pixels)), c.cameras, c.pixels.shape
+    (True, ['cam_0', 'cam_1', 'cam_2'], (3, 19, 2))
+    >>> bool(mc.calibrate(c.world, c.pixels, c.mask).ok.all())
+    True
+
+    ```
+    """
+    path = pathlib.Path(path)
+    kind = _correspondence_kind(path)
+    c = _checked(world, pixels, mask, cameras, points, unlabelled)
+    text = _to_csv(c) if kind == "csv" else _to_json(c)
+    return write_atomic(path, text)
+
+
+def load_correspondences(path) -> Correspondences:
+    """Read a file written by `save_correspondences` (or by hand, in the same format).
+
+    In a CSV, the `point` column may be left out when the world coordinates identify the
+    points (rows with the same `world_x, world_y, world_z` are one point); a point's world
+    coordinates must be the same in every row. Raises `ValueError` naming the file and line
+    for anything malformed: a missing column, a number that is not one, a pixel seen twice,
+    NaN or inf where a camera saw a point.
+    """
+    path = pathlib.Path(path)
+    kind = _correspondence_kind(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot be read ({error})") from None
+    return _from_csv(text, path) if kind == "csv" else _from_json(text, path)
+
+
+def _correspondence_kind(path: pathlib.Path) -> str:
+    kind = path.suffix.lower().lstrip(".")
+    if kind not in ("csv", "json"):
+        raise ValueError(f"{path}: correspondences are .csv or .json files; got {path.suffix!r}.")
+    return kind
+
+
+def _checked(world, pixels, mask, cameras, points, unlabelled) -> Correspondences:
+    pixels = np.array(pixels, dtype=float)
+    if pixels.ndim != 3 or pixels.shape[-1] != 2:
+        raise ValueError(f"`pixels` must be (C, P, 2); got shape {pixels.shape}.")
+    C, P = pixels.shape[:2]
+    if world is not None:
+        world = np.array(world, dtype=float)
+        if world.shape != (P, 3):
+            raise ValueError(f"`world` must be (P, 3) = ({P}, 3); got shape {world.shape}.")
+        if not np.all(np.isfinite(world)):
+            raise ValueError("`world` has NaN or inf entries.")
+    mask = np.all(np.isfinite(pixels), -1) if mask is None else np.asarray(mask)
+    if mask.dtype != bool or mask.shape != (C, P):
+        raise ValueError(f"`mask` must be bool of shape ({C}, {P}); got {mask.dtype} {mask.shape}.")
+    if not np.all(np.isfinite(pixels[mask])):
+        raise ValueError("`pixels` has NaN or inf entries where `mask` is True.")
+    pixels = np.where(mask[..., None], pixels, np.nan)
+    cameras = [f"cam_{i}" for i in range(C)] if cameras is None else [str(s) for s in cameras]
+    points = [str(i) for i in range(P)] if points is None else [str(s) for s in points]
+    for what, names, n in (("cameras", cameras, C), ("points", points, P)):
+        if len(names) != n or len(set(names)) != n or "" in names:
+            raise ValueError(f"need {n} different, non-empty `{what}` names; got {len(names)}.")
+    if any("\n" in s or "\r" in s for s in cameras + points):
+        raise ValueError("camera and point names must not contain line breaks.")
+    if unlabelled is None:
+        unlabelled = [np.zeros((0, 2)) for _ in range(C)]
+    unlabelled = [np.array(u, dtype=float).reshape(-1, 2) for u in unlabelled]
+    if len(unlabelled) != C or not all(np.all(np.isfinite(u)) for u in unlabelled):
+        raise ValueError(f"`unlabelled` must be {C} finite (K, 2) arrays, one per camera.")
+    return Correspondences(world, pixels, mask, cameras, points, unlabelled)
+
+
+def _number(v) -> str:
+    return repr(float(v))  # the shortest string that reads back as the same double
+
+
+def _to_csv(c: Correspondences) -> str:
+    import csv
+    import io as _io
+
+    buffer = _io.StringIO()
+    out = csv.writer(buffer, lineterminator="\n")
+    has_world = c.world is not None
+    out.writerow(_COLUMNS if has_world else ("camera", "point", *_PIXEL))
+    blank = [""] * 3 if has_world else []
+    world = [[_number(v) for v in row] for row in c.world] if has_world else [[]] * len(c.points)
+    # A reader orders the points as they first appear; where the observations alone would give
+    # another order (or miss points that no camera saw), name every point first.
+    _, first = np.unique(np.nonzero(c.mask)[1], return_index=True)
+    if not np.array_equal(np.argsort(first, kind="stable"), np.arange(len(c.points))):
+        for p, name in enumerate(c.points):
+            out.writerow(["", name, *world[p], "", ""])
+    for i, camera in enumerate(c.cameras):
+        seen = np.flatnonzero(c.mask[i])
+        for p in seen:
+            out.writerow([camera, c.points[p], *world[p], *map(_number, c.pixels[i, p])])
+        for xy in c.unlabelled[i]:
+            out.writerow([camera, "", *blank, *map(_number, xy)])
+        if not seen.size and not len(c.unlabelled[i]):
+            out.writerow([camera, "", *blank, "", ""])  # a camera that saw nothing
+    return buffer.getvalue()
+
+
+def _to_json(c: Correspondences) -> str:
+    document = {"format": CORRESPONDENCES, "version": VERSION, "cameras": c.cameras,
+                "points": c.points}  # fmt: skip
+    if c.world is not None:
+        document["world"] = _plain(c.world)
+    document["pixels"] = [
+        [_plain(c.pixels[i, p]) if c.mask[i, p] else None for p in range(len(c.points))]
+        for i in range(len(c.cameras))
+    ]
+    if any(len(u) for u in c.unlabelled):
+        document["unlabelled"] = [_plain(u) for u in c.unlabelled]
+    return json.dumps(document, allow_nan=False) + "\n"
+
+
+def _from_csv(text: str, path) -> Correspondences:
+    import csv
+
+    lines = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if not ln.startswith("#")]
+    lines = [(n, ln) for n, ln in lines if ln.strip()]
+    if not lines:
+        raise ValueError(f"{path}: empty; expected the header {','.join(_COLUMNS)}.")
+    rows = csv.reader([ln for _, ln in lines])
+    header = [h.strip().lower() for h in next(rows)]
+    unknown = [h for h in header if h not in _COLUMNS]
+    has_world = any(h in _WORLD for h in header)
+    missing = [h for h in ("camera", *_PIXEL, *(_WORLD if has_world else ())) if h not in header]
+    if unknown or missing or len(set(header)) != len(header):
+        problem = f"unknown column {unknown[0]!r}" if unknown else (
+            f"no {missing[0]!r} column" if missing else "a repeated column")  # fmt: skip
+        raise ValueError(f"{path}:{lines[0][0]}: {problem}; the header is {','.join(_COLUMNS)}"
+                         " (world_* columns optional, point optional with world_*).")  # fmt: skip
+    if "point" not in header and not has_world:
+        raise ValueError(f"{path}: a file without world_* columns needs a 'point' column.")
+    column = {h: k for k, h in enumerate(header)}
+    cameras, points, world, seen, unlabelled = {}, {}, {}, {}, {}
+    for (line, _), row in zip(lines[1:], rows):
+        where = f"{path}:{line}"
+        if len(row) != len(header):
+            raise ValueError(f"{where}: {len(row)} fields; the header has {len(header)}.")
+        field = {h: row[k].strip() for h, k in column.items()}
+
+        def numbers(names, where=where, field=field):
+            values = [field[h] for h in names]
+            if not any(values):
+                return None
+            try:
+                xs = tuple(float(v) for v in values)
+            except ValueError:
+                raise ValueError(f"{where}: {', '.join(values)} are not all numbers.") from None
+            if not all(math.isfinite(x) for x in xs):
+                raise ValueError(f"{where}: NaN or inf in {', '.join(names)}.")
+            return xs
+
+        camera = field["camera"]
+        xyz = numbers(_WORLD) if has_world else None
+        xy = numbers(_PIXEL)
+        name = field.get("point", "")
+        if not name and "point" not in field and xyz is not None:
+            name = world.get(("by position", xyz), str(len(points)))
+            world.setdefault(("by position", xyz), name)
+        if name:
+            if has_world and xyz is None:
+                raise ValueError(f"{where}: point {name!r} has no world coordinates.")
+            if world.setdefault(name, xyz) != xyz:
+                raise ValueError(f"{where}: point {name!r} has other world coordinates "
+                                 "than in an earlier row.")  # fmt: skip
+            points.setdefault(name, len(points))
+        elif xyz is not None:
+            raise ValueError(f"{where}: world coordinates without a point name.")
+        if not camera:
+            if xy is not None or not name:
+                raise ValueError(f"{where}: a pixel (or an empty row) without a camera.")
+            continue  # a point named without an observation
+        cameras.setdefault(camera, len(cameras))
+        unlabelled.setdefault(camera, [])
+        if xy is None:
+            if name:
+                raise ValueError(f"{where}: camera {camera!r} and point {name!r} but no pixel.")
+            continue  # a camera that saw nothing
+        if not name:
+            unlabelled[camera].append(xy)
+        elif seen.setdefault((camera, name), (line, xy)) != (line, xy):
+            first = seen[(camera, name)][0]
+            raise ValueError(f"{where}: camera {camera!r} saw point {name!r} on line {first} too.")
+    if not cameras:
+        raise ValueError(f"{path}: no observations.")
+    pixels = np.full((len(cameras), len(points), 2), np.nan)
+    mask = np.zeros((len(cameras), len(points)), bool)
+    for (camera, name), (_, xy) in seen.items():
+        pixels[cameras[camera], points[name]] = xy
+        mask[cameras[camera], points[name]] = True
+    xyz = np.array([world[n] for n in points], dtype=float).reshape(-1, 3) if has_world else None
+    return Correspondences(
+        world=xyz,
+        pixels=pixels,
+        mask=mask,
+        cameras=list(cameras),
+        points=list(points),
+        unlabelled=[np.array(unlabelled[c], dtype=float).reshape(-1, 2) for c in cameras],
+    )
+
+
+def _from_json(text: str, path) -> Correspondences:
+    try:
+        document = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(document, dict) or document.get("format") != CORRESPONDENCES:
+        raise ValueError(f'{path}: not a correspondences file (no "format": "{CORRESPONDENCES}").')
+    if document.get("version") != VERSION:
+        version = document.get("version")
+        raise ValueError(f"{path}: version {version}; this mvcalib reads {VERSION}.")
+    try:
+        cameras, points = list(document["cameras"]), list(document["points"])
+        C, P = len(cameras), len(points)
+        world = document.get("world")
+        world = None if world is None else _array(world, (P, 3))
+        rows = document["pixels"]
+        if len(rows) != C or any(len(r) != P for r in rows):
+            raise ValueError(f"pixels must be {C} lists of {P} entries")
+        mask = np.array([[v is not None for v in r] for r in rows], dtype=bool).reshape(C, P)
+        pixels = np.full((C, P, 2), np.nan)
+        for i, r in enumerate(rows):
+            for p, v in enumerate(r):
+                if v is not None:
+                    pixels[i, p] = _array(v, (2,))
+        unlabelled = document.get("unlabelled") or [[] for _ in range(C)]
+        unlabelled = [np.array(u, dtype=float).reshape(-1, 2) for u in unlabelled]
+        return _checked(world, pixels, mask, cameras, points, unlabelled)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: malformed correspondences ({error}).") from None

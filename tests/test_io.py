@@ -1,0 +1,149 @@
+"""Correspondence files (CSV and JSON): exact round trips, and one-line errors for bad files."""
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import mvcalib as mc
+
+FORMATS = ["csv", "json"]
+
+
+def _equal(a, b):
+    np.testing.assert_array_equal(a, b)  # NaN == NaN here, and bit-exact otherwise
+
+
+def _sample(rng, C=3, P=7, world=True):
+    pixels = rng.uniform(-10, 1100, (C, P, 2)) * 10.0 ** rng.integers(-8, 8, (C, P, 2))
+    mask = rng.random((C, P)) < 0.7
+    mask[:, 0] = True
+    mask[1] = False  # a camera that saw nothing
+    mask[:, -1] = False  # a point that nobody saw
+    xyz = rng.standard_normal((P, 3)) * 10.0 ** rng.integers(-12, 12, (P, 3)) if world else None
+    return xyz, pixels, mask
+
+
+@pytest.mark.parametrize("kind", FORMATS)
+@pytest.mark.parametrize("world", [True, False], ids=["correspondences", "tracks"])
+def test_round_trip_is_exact_with_unseen_points_silent_cameras_and_unlabelled_dots(
+    tmp_path, kind, world
+):
+    xyz, pixels, mask = _sample(np.random.default_rng(1), world=world)
+    names = ["left cam", "b,c", 'quote"d']  # CSV quoting
+    points = [f"p{i}" for i in range(pixels.shape[1])]
+    unlabelled = [np.zeros((0, 2)), np.array([[1.5, 2.25], [0.1, 1e-300]]), np.array([[3.0, 4]])]
+    path = mc.io.save_correspondences(
+        tmp_path / f"c.{kind}", xyz, pixels, mask, cameras=names, points=points,
+        unlabelled=unlabelled,
+    )  # fmt: skip
+    back = mc.io.load_correspondences(path)
+    assert back.cameras == names and back.points == points
+    _equal(back.mask, mask)
+    _equal(back.pixels, np.where(mask[..., None], pixels, np.nan))
+    if world:
+        _equal(back.world, xyz)
+    else:
+        assert back.world is None
+    assert len(back.unlabelled) == 3
+    for a, b in zip(back.unlabelled, unlabelled):
+        _equal(a, b)
+    # and writing what was read gives the same file
+    again = mc.io.save_correspondences(
+        tmp_path / f"again.{kind}", back.world, back.pixels, back.mask, cameras=back.cameras,
+        points=back.points, unlabelled=back.unlabelled,
+    )  # fmt: skip
+    assert again.read_text() == path.read_text()
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    pixels=hnp.arrays(np.float64, (2, 4, 2), elements=finite),
+    world=hnp.arrays(np.float64, (4, 3), elements=finite),
+    kind=st.sampled_from(FORMATS),
+)
+def test_every_double_survives_the_round_trip(tmp_path_factory, pixels, world, kind):
+    # Points are named, so equal world coordinates (which hypothesis likes) stay two points.
+    path = tmp_path_factory.mktemp("rt") / f"c.{kind}"
+    back = mc.io.load_correspondences(mc.io.save_correspondences(path, world, pixels))
+    _equal(back.world, world)
+    _equal(back.pixels, pixels)
+    assert back.mask.all()
+
+
+def test_csv_without_point_names_identifies_points_by_their_world_coordinates(tmp_path):
+    path = tmp_path / "hand.csv"
+    path.write_text(
+        "# written by hand\n"
+        "camera,world_x,world_y,world_z,pixel_x,pixel_y\n"
+        "a,0,0,0,10,20\n"
+        "a,1,0,0,30,40\n"
+        "b,1,0,0,31,41\n"
+        "b,0,0,0,11,21\n"
+        "\n"
+    )
+    c = mc.io.load_correspondences(path)
+    _equal(c.world, [[0, 0, 0], [1, 0, 0]])
+    _equal(c.pixels, [[[10, 20], [30, 40]], [[11, 21], [31, 41]]])
+    assert c.cameras == ["a", "b"] and c.mask.all()
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "empty"),
+        ("camera,point,pixel_x\n", "no 'pixel_y' column"),
+        ("camera,point,pixel_x,pixel_y,colour\n", "unknown column 'colour'"),
+        ("camera,pixel_x,pixel_y\na,1,2\n", "needs a 'point' column"),
+        ("camera,point,pixel_x,pixel_y\na,1,2\n", ":2: 3 fields"),
+        ("camera,point,pixel_x,pixel_y\na,1,2,x\n", ":2: 2, x are not all numbers"),
+        ("camera,point,pixel_x,pixel_y\na,1,2,nan\n", ":2: NaN or inf"),
+        ("camera,point,pixel_x,pixel_y\na,1,2,3\na,1,2,3\n", ":3: camera 'a' saw point '1' on"),
+        (
+            "camera,point,world_x,world_y,world_z,pixel_x,pixel_y\na,1,0,0,0,2,3\nb,1,0,0,1,2,3\n",
+            ":3: point '1' has other world coordinates",
+        ),
+        ("camera,point,world_x,world_y,world_z,pixel_x,pixel_y\na,1,,,,2,3\n", "no world"),
+        ("camera,point,pixel_x,pixel_y\n,1,2,3\n", "without a camera"),
+    ],
+)
+def test_malformed_csv_gives_one_line_naming_file_and_line(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError) as info:
+        mc.io.load_correspondences(path)
+    assert message in str(info.value) and str(path) in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_malformed_json_and_wrong_suffix_are_refused(tmp_path):
+    good = mc.io.save_correspondences(tmp_path / "c.json", np.eye(3), np.ones((1, 3, 2)))
+    document = json.loads(good.read_text())
+    document["pixels"][0][1] = [1.0, None]
+    (tmp_path / "nan.json").write_text(json.dumps(document))
+    document["pixels"] = [[[1, 2]]]
+    (tmp_path / "short.json").write_text(json.dumps(document))
+    (tmp_path / "rig.json").write_text('{"format": "mvcalib.rig"}')
+    (tmp_path / "broken.json").write_text("{")
+    for name, message in [
+        ("nan.json", "NaN or inf"),
+        ("short.json", "must be 1 lists of 3"),
+        ("rig.json", "not a correspondences file"),
+        ("broken.json", "not valid JSON"),
+        ("missing.json", "cannot be read"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            mc.io.load_correspondences(tmp_path / name)
+    with pytest.raises(ValueError, match=r"\.csv or \.json"):
+        mc.io.save_correspondences(tmp_path / "c.txt", np.eye(3), np.ones((1, 3, 2)))
+    with pytest.raises(ValueError, match="NaN or inf entries where `mask` is True"):
+        mc.io.save_correspondences(
+            tmp_path / "c.csv", None, np.full((1, 3, 2), np.nan), np.ones((1, 3), bool)
+        )
+    assert not (tmp_path / "c.csv").exists()  # nothing written
