@@ -9,8 +9,18 @@ import os
 import platform
 import sys
 import time
+import tracemalloc
+from pathlib import Path
 
 import numpy as np
+
+# Where every script writes its JSON; `run.py --results DIR` (and the smoke test) move it.
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def results_path(name: str) -> Path:
+    """`RESULTS_DIR / name`, looked up at call time so that the suite can redirect it."""
+    return RESULTS_DIR / name
 
 
 def measure(fns, *, min_time, rounds):
@@ -59,10 +69,55 @@ def machine_info(*packages: str) -> dict:
         **{name: version(name) for name in ("jax", "jaxlib", "mvcalib", "numpy", *packages)},
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
+        # The machine is shared: how busy it was when the run started (1, 5, 15 min averages).
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
 
 
-def write_results(path, benchmark: str, *, quick: bool, machine: dict, **sections) -> None:
+def first_and_warm(fn, *, warm_calls: int = 3):
+    """(first call's wall time, median of `warm_calls` further calls, first call's output).
+
+    For a jit-compiled `fn` at a new shape, first - warm is the trace + compile time.
+    """
+    t0 = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t0
+    warm = []
+    for _ in range(warm_calls):
+        t0 = time.perf_counter()
+        fn()
+        warm.append(time.perf_counter() - t0)
+    return first, float(np.median(warm)), out
+
+
+def tracemalloc_peak_mb(fn) -> float:
+    """Peak of the memory traced by `tracemalloc` during one call of `fn`, in MB.
+
+    Python objects and NumPy arrays (NumPy reports its data buffers to tracemalloc; OpenCV
+    returns NumPy arrays); not memory that C/C++ libraries allocate for their own work.
+    """
+    tracemalloc.start()
+    try:
+        fn()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return peak / 2**20
+
+
+def xla_peak_mb(jitted, *args) -> float:
+    """XLA's own memory analysis of `jitted` compiled for `args`, in MB: arguments + outputs +
+    temporaries (`peak_memory_in_bytes` where the backend reports it)."""
+    stats = jitted.lower(*args).compile().memory_analysis()
+    if stats is None:
+        return float("nan")
+    peak = getattr(stats, "peak_memory_in_bytes", 0) or (
+        stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes
+    )
+    return peak / 2**20
+
+
+def write_results(path, benchmark: str, *, quick: bool, machine: dict, **sections) -> dict:
     """Write one run's results as JSON: which benchmark, when, quick or full, on what machine,
     then the script's own `sections` (settings, wall time, results...)."""
     payload = {
@@ -75,3 +130,4 @@ def write_results(path, benchmark: str, *, quick: bool, machine: dict, **section
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(payload, indent=2) + "\n")
     print(f"results written to {path}")
+    return payload

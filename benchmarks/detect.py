@@ -28,7 +28,11 @@ dominated by outliers (elongated dots split over thresholds), hence the median b
 The labelling of the detected dots (`mc.label_dots`: which blob is which dot id) is timed
 after mvcalib's detector, and checked against the dot ids known from the rendering.
 
-`--quick` uses 20 views instead of 100 (under a minute on two cores).
+Compile: mvcalib's warm-up call (on a view not timed) minus its median time per image. Peak
+memory: `tracemalloc`'s peak during one detection of the first view, per detector (NumPy
+buffers and Python objects; not OpenCV's internal C++ allocations).
+
+`--quick` uses 10 views instead of 100 (under half a minute on two cores); `--smoke` 2.
 
 Results are printed as a table and written to `benchmarks/results/detect.json`.
 
@@ -39,20 +43,22 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _common import machine_info, write_results  # noqa: E402
+
+try:
+    from ._common import machine_info, results_path, tracemalloc_peak_mb, write_results
+except ImportError:  # run as a script
+    from _common import machine_info, results_path, tracemalloc_peak_mb, write_results
 
 import mvcalib as mc  # noqa: E402
 from mvcalib import detect_dots  # noqa: E402
 from mvcalib.synthetic import ellipse_centres, render, true_centres, visible_dots  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "detect.json"
 IMAGE_SIZE = (1000, 1100)  # width, height
 RENDER = dict(blur_sigma=1.0, noise_sigma=3.0, gradient=0.3)
 SEED = 0
@@ -125,9 +131,10 @@ def summarise(name, times, errors_e, errors_t, found, missed, spurious):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="20 views instead of 100; < 1 min")
+    parser.add_argument("--quick", action="store_true", help="10 views instead of 100")
+    parser.add_argument("--smoke", action="store_true", help="2 views")
     args = parser.parse_args(argv)
-    n_views = 20 if args.quick else 100
+    n_views = 2 if args.smoke else 10 if args.quick else 100
 
     wall = time.perf_counter()
     target = mc.targets.box_corner()
@@ -150,7 +157,11 @@ def main(argv=None):
     detectors["OpenCV SimpleBlobDetector"] = opencv
     stats = {name: dict(times=[], e=[], t=[], found=0, missed=0, spurious=0) for name in detectors}
     bias, touching = [], 0
-    detect_dots(render(rig.cameras[0], target, IMAGE_SIZE, key=0, **RENDER))  # warm-up
+    warm_image = render(rig.cameras[0], target, IMAGE_SIZE, key=0, **RENDER)
+    start = time.perf_counter()
+    detect_dots(warm_image)  # warm-up
+    first_call = time.perf_counter() - start
+    peak = {name: tracemalloc_peak_mb(lambda d=d: d(warm_image)) for name, d in detectors.items()}
     for i in range(n_views):
         camera = rig.cameras[i]
         image = render(camera, target, IMAGE_SIZE, key=SEED * 1000 + i, **RENDER)
@@ -210,11 +221,33 @@ def main(argv=None):
         f"(quartiles {label_ms[0]:.0f}-{label_ms[2]:.0f}); views labelled correctly "
         f"{labelling['correct']}, flagged {labelling['flagged']}, wrong {labelling['wrong']}"
     )
+    print(
+        f"first call (warm-up) {first_call:.2f} s; peak (tracemalloc, one detection): "
+        + ", ".join(f"{name} {mb:.0f} MB" for name, mb in peak.items())
+    )
     wall = time.perf_counter() - wall
     print(f"total wall time {wall:.1f} s")
 
-    write_results(
-        RESULTS,
+    mine, cv = rows
+    summary = [
+        {
+            "benchmark": "detection",
+            "setting": f"{n_views} views {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}",
+            "path": r["detector"],
+            "unit": "image",
+            "us": 1e3 * r["ms_per_image_median"],
+            "peer_over_mvcalib": r["ms_per_image_median"] / mine["ms_per_image_median"],
+            "accuracy": f"RMS {r['rms_vs_ellipse_px']:.3f} px, missed {r['missed']}, "
+            f"spurious {r['spurious']}",
+            "compile_s": first_call - 1e-3 * mine["ms_per_image_median"] if r is mine else None,
+            "peak_mb": peak[r["detector"]],
+            "peak_kind": "tracemalloc",
+            "x_bound": None,
+        }
+        for r in (mine, cv)
+    ]
+    return write_results(
+        results_path("detect.json"),
         "detect",
         quick=args.quick,
         machine=info,
@@ -239,7 +272,10 @@ def main(argv=None):
             "views_wrong": labelling["wrong"],
         },
         wall_time_s=wall,
+        first_call_s=first_call,
+        peak_mb_tracemalloc=peak,
         results=rows,
+        summary=summary,
     )
 
 

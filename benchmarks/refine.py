@@ -12,11 +12,12 @@ skew and k3 = 0 held fixed). The problems of C = 16 and 64 cameras are the first
 
 - **mvcalib**: the public `mvcalib.refine(seed, world, pixels, mask)` with its defaults
   (optimistix Levenberg–Marquardt, rtol = atol = 1e-10, one problem per camera, vmapped across
-  the rig in one compiled call). It is compiled once per rig size by a warm-up call, whose wall
-  time is reported separately ("1st call": trace + compile + one run). Every timed call ends
-  with `jax.block_until_ready` on the returned `Refinement`. Besides the optimum, each call also
-  computes the per-camera covariance of the parameters and the reprojection report, which the
-  SciPy loop does not.
+  the rig), wrapped in one `jax.jit` so that validation, solve and report are one compiled call
+  (whose memory XLA can analyse). It is compiled once per rig size by a warm-up call, whose wall
+  time is reported separately ("1st call": trace + compile + one run; compile = 1st call - warm
+  call). Every timed call ends with `jax.block_until_ready` on the returned `Refinement`.
+  Besides the optimum, each call also computes the per-camera covariance of the parameters and
+  the reprojection report, which the SciPy loop does not.
 - **scipy lm / scipy trf**: a Python loop over the cameras calling
   `scipy.optimize.least_squares` (`method="lm"`, MINPACK; `method="trf"`) with
   `x_scale="jac"` and `ftol = xtol = gtol = 1e-12` on the same parametrisation and seed:
@@ -46,6 +47,9 @@ follows the maximum of its iterations over the batch, not their mean: the third 
 camera-steps the batch pays (C x max steps) against the loop's (the sum of `njev`), and gives the
 time per camera-step of each.
 
+Peak memory: XLA's memory analysis of mvcalib's compiled call (arguments + outputs +
+temporaries); `tracemalloc`'s peak during one SciPy loop (NumPy buffers and Python objects).
+
 `--quick` (under a minute on two cores) times the 256-camera rig only, in 2 rounds.
 
 Results are printed as tables and written to `benchmarks/results/refine.json`.
@@ -57,7 +61,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import jax
 
@@ -67,8 +70,26 @@ import cv2  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine_info, measure, write_results  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
+
+try:
+    from ._common import (
+        machine_info,
+        measure,
+        results_path,
+        tracemalloc_peak_mb,
+        write_results,
+        xla_peak_mb,
+    )
+except ImportError:  # run as a script
+    from _common import (
+        machine_info,
+        measure,
+        results_path,
+        tracemalloc_peak_mb,
+        write_results,
+        xla_peak_mb,
+    )
 
 import mvcalib as mc  # noqa: E402
 
@@ -80,7 +101,6 @@ FILL = (0.8, 0.95)
 DISTORTION = (-0.2, 0.1, 1e-3, 1e-3, 0.0)  # k1, k2, p1, p2, k3 of the true cameras
 SCIPY_TOL = 1e-12
 SCIPY_METHODS = ("lm", "trf")
-RESULTS = Path(__file__).resolve().parent / "results" / "refine.json"
 
 
 # ---------------------------------------------------------------------------------- problem
@@ -104,9 +124,14 @@ def subset(problem, C):
 
 
 # ---------------------------------------------------------------------------------- mvcalib
+@jax.jit
+def _refine_jit(seed, world, pixels, mask):
+    return mc.refine(seed, world, pixels, mask)
+
+
 def mvcalib_refine(seed, world, pixels, mask):
     """The public API with its defaults, blocked until the whole result is computed."""
-    return jax.block_until_ready(mc.refine(seed, world, pixels, mask))
+    return jax.block_until_ready(_refine_jit(seed, world, pixels, mask))
 
 
 # ---------------------------------------------------------------------------------- SciPy
@@ -243,6 +268,10 @@ def bench_one(problem, C, *, quick):
         row[f"{name}_total_s"] = st["median"]
         row[f"{name}_repeats"] = st["repeats"]
         row[f"{name}_first_call_s"] = first_call[name]
+    row["mvcalib_compile_s"] = first_call["mvcalib"] - stats["mvcalib"]["median"]
+    row["mvcalib_peak_mb_xla"] = xla_peak_mb(_refine_jit, seed, world, pixels, mask)
+    for method in SCIPY_METHODS:
+        row[f"scipy_{method}_peak_mb_tracemalloc"] = tracemalloc_peak_mb(fns[f"scipy_{method}"])
     for method in SCIPY_METHODS:
         row[f"ratio_scipy_{method}_over_mvcalib"] = (
             stats[f"scipy_{method}"]["median"] / stats["mvcalib"]["median"]
@@ -362,6 +391,34 @@ def print_table(rows, jacobian_error):
             print(f"note: C = {r['n_cameras']}: only {r['mvcalib_ok']} mvcalib cameras ok.")
 
 
+def summary_rows(rows) -> list[dict]:
+    """The suite's summary: per path of the largest rig, time per camera, ratio, accuracy."""
+    r = rows[-1]
+    out = []
+    for name in ("mvcalib", *(f"scipy_{m}" for m in SCIPY_METHODS)):
+        rel = None if name == "mvcalib" else r[f"{name}_rms_max_rel_diff"]
+        out.append(
+            {
+                "benchmark": "refinement",
+                "setting": f"C={r['n_cameras']}, {2 * r['n_points']} residuals",
+                "path": "mvcalib refine" if name == "mvcalib" else f"scipy {name[6:]} loop",
+                "unit": "camera",
+                "us": 1e3 * r[f"{name}_ms_per_camera"],
+                "peer_over_mvcalib": r[f"{name}_total_s"] / r["mvcalib_total_s"],
+                "accuracy": f"RMS {r['rms_after_median_px']:.3f} px"
+                if rel is None
+                else f"max rel dRMS {rel:.0e}",
+                "compile_s": r["mvcalib_compile_s"] if name == "mvcalib" else None,
+                "peak_mb": r["mvcalib_peak_mb_xla"]
+                if name == "mvcalib"
+                else r[f"{name}_peak_mb_tracemalloc"],
+                "peak_kind": "xla" if name == "mvcalib" else "tracemalloc",
+                "x_bound": None,
+            }
+        )
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="256 cameras only, 2 rounds; < 1 min")
@@ -383,11 +440,19 @@ def main(argv=None):
         if jacobian_error is None:
             jacobian_error = check_jacobian(problems[0])
     print_table(rows, jacobian_error)
+    for r in rows:
+        print(
+            f"C = {r['n_cameras']}: mvcalib compile (1st call - warm) "
+            f"{r['mvcalib_compile_s']:.1f} s, "
+            f"peak {r['mvcalib_peak_mb_xla']:.1f} MB (XLA memory analysis); scipy loops peak "
+            + ", ".join(f"{m} {r[f'scipy_{m}_peak_mb_tracemalloc']:.1f} MB" for m in SCIPY_METHODS)
+            + " (tracemalloc)"
+        )
     wall = time.perf_counter() - wall
     print(f"\ntotal wall time {wall:.1f} s")
 
-    write_results(
-        RESULTS,
+    payload = write_results(
+        results_path("refine.json"),
         "refine",
         quick=args.quick,
         machine=info,
@@ -408,7 +473,9 @@ def main(argv=None):
         wall_time_s=wall,
         results=rows,
         per_camera={"n_cameras": rows[-1]["n_cameras"], **per_camera},
+        summary=summary_rows(rows),
     )
+    return payload
 
 
 if __name__ == "__main__":
