@@ -26,6 +26,8 @@ from ._label import label_dots as label_dots
 from ._pipeline import Calibration as Calibration
 from ._pipeline import CalibrationError as CalibrationError
 from ._pipeline import calibrate as calibrate
+from ._planar import PlanarCalibration as PlanarCalibration
+from ._planar import calibrate_planar as calibrate_planar
 from ._refine import Cauchy as Cauchy
 from ._refine import Huber as Huber
 from ._refine import Refinement as Refinement
