@@ -1,6 +1,15 @@
-"""Command line: `mvcalib demo`, `mvcalib calibrate-images` (also `python -m mvcalib ...`).
+"""Command line: `mvcalib COMMAND ...` (also `python -m mvcalib COMMAND ...`).
 
-Exit codes: 0 success, 1 the work failed (e.g. a camera could not be calibrated), 2 bad usage.
+Commands: `calibrate` (correspondences file -> rig), `detect` (photographs -> dots, labelled),
+`report` (Table I, a summary and a figure of a rig on a correspondences file), `triangulate`
+(rig + 2-D tracks -> 3-D points), `calibrate-images` (photographs -> rig in one go) and `demo`
+(the paper's experiment). `mvcalib COMMAND --help` shows each one's options and examples.
+
+Exit codes: 0 success; 1 the work failed (a camera could not be calibrated, a photograph not
+labelled, no point triangulated, an output not written); 2 bad usage or bad input (an unknown
+flag, a missing or malformed file). Errors are one line on stderr, never a traceback. Progress
+goes to stderr (`--quiet` silences it), results to stdout; every output file is written to a
+temporary file and renamed, so none is ever left half-written.
 
 The CLI keeps JAX's persistent compilation cache in `$XDG_CACHE_HOME/mvcalib/jax` (default
 `~/.cache/mvcalib/jax`), so that only the first run pays for compiling; set
@@ -12,17 +21,55 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
+import re
 import sys
 
-EXAMPLES = """examples:
+EXAMPLES = {
+    "calibrate": """\
+  mvcalib calibrate points.csv --out rig.json
+                                  a camera for each camera named in the file (DLT, Table I)
+  mvcalib calibrate points.csv --refine --format opencv --out rig.yml
+                                  refined with distortion k1 k2 p1 p2, as OpenCV YAML
+  mvcalib calibrate points.csv --distortion none --format colmap --image-size 1000 1100 \\
+      --out sparse/               refined pinhole cameras as a COLMAP text model""",
+    "detect": """\
+  mvcalib detect cam*.png --out dots.csv
+                                  the dots of the box-corner target in each photo, labelled
+  mvcalib detect photo.tif --no-label --bright-dots --out blobs.json
+                                  bright blobs, unlabelled""",
+    "report": """\
+  mvcalib report rig.json points.csv
+                                  Table I and a summary of the residuals
+  mvcalib report rig.json points.csv --plot report.png
+                                  ... and a figure: the rig in 3-D, residuals, histograms""",
+    "triangulate": """\
+  mvcalib triangulate rig.json tracks.csv --out points3d.csv
+                                  a 3-D point per tracked point seen by two cameras or more""",
+    "calibrate-images": """\
+  mvcalib calibrate-images cam*.png --out rig.json
+                                  one camera per photo of the box-corner target""",
+    "demo": """\
   mvcalib demo                    the paper's experiment with 0.3 px noise
   mvcalib demo --noise-free       no noise: the four snapshots agree to 1e-6 px
   mvcalib demo --float32          the same in single precision
   mvcalib demo --images           the whole pipeline from rendered photographs, and a figure
                                   of the detection stages (mvcalib_stages.png)
-  mvcalib calibrate-images cam*.png --out rig.json
-                                  one camera per photo of the box-corner target
-"""
+  mvcalib demo --save demo && mvcalib report demo/rig.json demo/correspondences.csv \\
+      --plot rig.png              the demo's files, and their report with a figure""",
+}
+
+FILES = """\
+files:
+  correspondences  CSV with the header camera,point,world_x,world_y,world_z,pixel_x,pixel_y
+                   (one row per observation), or JSON (mvcalib.io.save_correspondences);
+                   pixels are (x = column, y = row), origin at the centre of the top-left pixel
+  tracks           the same without the world_* columns
+  rig              JSON (mvcalib.io.save_json), OpenCV YAML (.yml, .yaml) or a COLMAP text
+                   model (a folder); cameras are matched to the files' camera names
+
+exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
+
+_DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -30,23 +77,146 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"mvcalib: error: {message} (see `mvcalib --help`)\n")
 
 
+class _Failed(Exception):
+    """The work failed (exit code 1); the message is printed as one line."""
+
+
+def _distortion(text: str) -> tuple[str, ...]:
+    names = () if text.strip().lower() == "none" else tuple(re.split(r"[,\s]+", text.strip()))
+    unknown = [n for n in names if n not in _DISTORTION]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"{unknown[0]!r} is not one of {', '.join(_DISTORTION)} (or 'none')"
+        )
+    return names
+
+
 def build_parser() -> argparse.ArgumentParser:
+    everything = "\n".join(EXAMPLES.values())
     parser = _Parser(
         prog="mvcalib",
         description="Calibrate rigs of cameras (DLT + SVD, closed-form decomposition, "
-        "registration into one global frame).",
-        epilog=EXAMPLES,
+        "registration into one global frame), detect and label the dots of the target in "
+        "photographs, and triangulate what several cameras see.",
+        epilog=f"examples:\n{everything}\n\n{FILES}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"mvcalib {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    demo = sub.add_parser(
+
+    def command(name, help, description):
+        return sub.add_parser(
+            name,
+            help=help,
+            description=description,
+            epilog=f"examples:\n{EXAMPLES[name]}\n\n{FILES}",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+            parents=[common],
+        )
+
+    size = dict(nargs=2, type=int, metavar=("WIDTH", "HEIGHT"))
+
+    calibrate = command(
+        "calibrate",
+        "calibrate every camera of a correspondences file",
+        "Calibrate one camera per camera named in a file of 3-D/2-D correspondences: "
+        "normalised DLT, closed-form decomposition and Table I, optionally refined by "
+        "Levenberg-Marquardt with lens distortion. Cameras that cannot be calibrated are "
+        "named with the reason (exit code 1); the JSON rig records their status.",
+    )
+    calibrate.add_argument("correspondences", metavar="CORRESPONDENCES", help=".csv or .json")
+    calibrate.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
+    calibrate.add_argument(
+        "--format",
+        choices=("json", "opencv", "colmap"),
+        default="json",
+        help="json (default; records failed cameras too), opencv (FileStorage YAML) or colmap "
+        "(text model in the folder --out; needs --image-size and --refine or --distortion)",
+    )
+    calibrate.add_argument(
+        "--refine",
+        action="store_true",
+        help="refine by Levenberg-Marquardt with zero skew and distortion k1 k2 p1 p2",
+    )
+    calibrate.add_argument(
+        "--distortion",
+        type=_distortion,
+        metavar="LIST",
+        help="the distortion coefficients to refine, e.g. k1,k2 or none (implies --refine)",
+    )
+    calibrate.add_argument("--image-size", **size, help="written to OpenCV and COLMAP files")
+
+    detect = command(
+        "detect",
+        "detect (and label) the target's dots in photographs",
+        "Detect the dots in each photograph (the paper's morphological steps, sub-pixel "
+        "centroids) and label them from the box-corner target's large fiducial dots. Writes a "
+        "correspondences file (one camera per photograph, named by its path) that `mvcalib "
+        "calibrate` reads; dots that could not be labelled are kept in it as unlabelled. "
+        "Photos that cannot be read or labelled are named with the reason (exit code 1).",
+    )
+    detect.add_argument("images", nargs="+", metavar="IMG", help="photographs (PNG, TIFF, ...)")
+    detect.add_argument("--out", required=True, metavar="FILE", help="dots file: .csv or .json")
+    detect.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
+    detect.add_argument("--no-label", action="store_true", help="detect only; do not label")
+
+    report = command(
+        "report",
+        "Table I, a summary and a figure of a rig on correspondences",
+        "Reproject the correspondences' world points with a saved rig and compare with their "
+        "pixels: Table I (mean signed error in x and y, RMS, max per camera), a summary over "
+        "all cameras and, with --plot, a figure (the rig in 3-D with the points, each camera's "
+        "residuals over its image, residual histograms).",
+    )
+    report.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml) or COLMAP folder")
+    report.add_argument("correspondences", metavar="CORRESPONDENCES", help=".csv or .json")
+    report.add_argument("--plot", metavar="PNG", help="write the figure here (.png, .pdf, .svg)")
+    report.add_argument("--image-size", **size, help="image size for the figure")
+
+    triangulate = command(
+        "triangulate",
+        "3-D points from a rig and 2-D tracks",
+        "Triangulate every tracked point seen by two cameras or more (N-view linear "
+        "triangulation, optionally polished by Levenberg-Marquardt) and write a CSV: point, "
+        "world_x, world_y, world_z, views, rms_px (reprojection RMS), angle_deg (the widest "
+        "angle between its rays) and ok (in front of its cameras, rays at least --min-angle "
+        "apart). Points seen once are written with empty coordinates. If the tracks file has "
+        "world coordinates, the distance to them is reported.",
+    )
+    triangulate.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml) or COLMAP folder")
+    triangulate.add_argument("tracks", metavar="TRACKS", help=".csv or .json")
+    triangulate.add_argument("--out", required=True, metavar="CSV", help="3-D points to write")
+    triangulate.add_argument("--refine", action="store_true", help="minimise reprojection error")
+    triangulate.add_argument(
+        "--min-angle", type=float, default=1.0, metavar="DEG", help="for ok (default 1 degree)"
+    )
+
+    images = command(
+        "calibrate-images",
+        "calibrate one camera per photograph of the dot target",
+        "Detect the dots in each photograph (the paper's morphological steps), label them from "
+        "the target's large fiducial dots, and calibrate one camera per image (DLT, "
+        "closed-form decomposition, Table I). Images that cannot be labelled with certainty "
+        "are flagged, never calibrated wrongly; the rig file records their status.",
+    )
+    images.add_argument("images", nargs="+", metavar="IMG", help="photographs (PNG, TIFF, ...)")
+    images.add_argument("--out", required=True, metavar="JSON", help="rig file to write")
+    images.add_argument(
+        "--refine",
+        action="store_true",
+        help="refine each camera by Levenberg-Marquardt with radial/tangential distortion",
+    )
+    images.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
+
+    demo = command(
         "demo",
-        help="run the paper's 4-snapshot experiment on a synthetic scene",
-        description="Run the paper's experiment on a synthetic scene: DLT per snapshot, "
-        "Table I, registration into the global frame, and the fixed point's pixel from every "
-        "snapshot.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "run the paper's 4-snapshot experiment on a synthetic scene",
+        "Run the paper's experiment on a synthetic scene: DLT per snapshot, Table I, "
+        "registration into the global frame, and the fixed point's pixel from every snapshot.",
     )
     demo.add_argument("--noise", type=float, default=0.3, help="pixel noise sigma (default 0.3)")
     demo.add_argument(
@@ -70,28 +240,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --images: where to write the processing-stage figure "
         "(default mvcalib_stages.png; '' for none)",
     )
-
-    images = sub.add_parser(
-        "calibrate-images",
-        help="calibrate one camera per photograph of the dot target",
-        description="Detect the dots in each photograph (the paper's morphological steps), "
-        "label them from the target's large fiducial dots, and calibrate one camera per image "
-        "(DLT, closed-form decomposition, Table I). Images that cannot be labelled with "
-        "certainty are flagged, never calibrated wrongly; the rig file records their status.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    demo.add_argument(
+        "--save",
+        metavar="DIR",
+        help="also write the snapshots' cameras (DIR/rig.json) and their dots "
+        "(DIR/correspondences.csv) for `mvcalib report`",
     )
-    images.add_argument("images", nargs="+", metavar="IMG", help="photographs (PNG, TIFF, ...)")
-    images.add_argument("--out", required=True, metavar="JSON", help="rig file to write")
-    images.add_argument(
-        "--refine",
-        action="store_true",
-        help="refine each camera by Levenberg-Marquardt with radial/tangential distortion",
-    )
-    images.add_argument(
-        "--bright-dots", action="store_true", help="bright dots on a dark background"
-    )
-    images.add_argument("--quiet", action="store_true", help="no per-image progress lines")
     return parser
 
 
@@ -112,43 +266,423 @@ def _enable_compilation_cache(jax) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
+def _check_usage(parser, args) -> None:
+    """Everything that can be checked before any work: files to read exist, folders to write
+    into exist, the flags go together. `parser.error` exits with code 2."""
+    inputs = {
+        "calibrate": ["correspondences"],
+        "report": ["rig", "correspondences"],
+        "triangulate": ["rig", "tracks"],
+    }.get(args.command, [])
+    for name in inputs:
+        if not pathlib.Path(getattr(args, name)).exists():
+            parser.error(f"no such file: {getattr(args, name)}")
+    if args.command in ("detect", "calibrate-images"):
+        missing = [p for p in args.images if not pathlib.Path(p).is_file()]
+        if missing:
+            parser.error(f"no such image file: {missing[0]}")
+    for flag in ("out", "plot", "save"):
+        value = getattr(args, flag, None)
+        if value and not pathlib.Path(value).resolve().parent.is_dir():
+            parser.error(f"the folder of --{flag} does not exist: {pathlib.Path(value).parent}")
+    suffix = pathlib.Path(getattr(args, "out", "") or "").suffix.lower()
+    if args.command == "detect" and suffix not in (".csv", ".json"):
+        parser.error(f"--out must be a .csv or .json file; got {args.out}")
+    if args.command == "triangulate" and suffix != ".csv":
+        parser.error(f"--out must be a .csv file; got {args.out}")
+    if args.command == "calibrate" and args.format == "colmap":
+        if args.image_size is None:
+            parser.error("--format colmap needs --image-size WIDTH HEIGHT")
+        if not args.refine and args.distortion is None:
+            parser.error(
+                "--format colmap needs --refine or --distortion (COLMAP's cameras have no "
+                "skew; the DLT's have)"
+            )
+    if args.command == "demo" and (args.noise < 0 or args.global_noise < 0):
+        parser.error("noise levels must be non-negative")
+    if args.command == "triangulate" and not args.min_angle >= 0:
+        parser.error("--min-angle must be non-negative")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
+    _check_usage(parser, args)
+    try:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        _enable_compilation_cache(jax)
+        return COMMANDS[args.command](args)
+    except KeyboardInterrupt:
+        print("mvcalib: interrupted", file=sys.stderr)
+        return 130
+    except _Failed as error:
+        print(f"mvcalib: {_one_line(error)}", file=sys.stderr)
+        return 1
+    except ValueError as error:  # bad input: a malformed file, too few points, ...
+        print(f"mvcalib: error: {_one_line(error)}", file=sys.stderr)
+        return 2
+    except OSError as error:  # an output could not be written (inputs raise ValueError)
+        print(f"mvcalib: {_one_line(error)}", file=sys.stderr)
+        return 1
+
+
+def _one_line(error: BaseException) -> str:
+    return "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
+
+
+def _progress(args):
+    def say(message: str) -> None:
+        if not args.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    return say
+
+
+# ---------------------------------------------------------------------------- shared helpers
+def _load_rig(path):
+    """`(cameras (C,), names)` from a JSON rig, an OpenCV YAML file or a COLMAP folder."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)
-    _enable_compilation_cache(jax)
-    if args.command == "calibrate-images":
-        return _calibrate_images(parser, args)
-    if args.command == "demo":
-        from . import demo
+    from . import io
 
-        if args.images:
-            return demo.main_images(seed=args.seed, figure=args.figure or None)
-        if args.noise < 0 or args.global_noise < 0:
-            parser.error("noise levels must be non-negative")
-        noise, global_noise = (0.0, 0.0) if args.noise_free else (args.noise, args.global_noise)
-        try:
-            return demo.main(
-                noise=noise, global_noise=global_noise, seed=args.seed, float32=args.float32
-            )
-        except ValueError as e:  # includes CalibrationError
-            print(f"mvcalib: {e}", file=sys.stderr)
-            return 1
-    return 2
+    path = pathlib.Path(path)
+    if path.is_dir():
+        cameras, names = io.load_colmap(path)
+    elif path.suffix.lower() in (".yml", ".yaml"):
+        cameras, names = io.load_opencv(path)
+    else:
+        cameras, names = io.load_json(path)
+    if cameras.batch_shape == ():
+        cameras = jax.tree_util.tree_map(lambda a: a[None], cameras)
+    return cameras, names
 
 
-def _calibrate_images(parser, args) -> int:
-    missing = [p for p in args.images if not pathlib.Path(p).is_file()]
-    if missing:
-        parser.error(f"no such image file: {missing[0]}")
+def _identifier(name: str) -> str:
+    """A camera name as OpenCV's FileStorage keys allow: letters, digits and '_'."""
+    name = re.sub(r"\W", "_", name)
+    return name if name[:1].isalpha() or name[:1] == "_" else f"cam_{name}"
+
+
+def _no_spaces(name: str) -> str:
+    """A camera name as COLMAP's image names allow."""
+    return re.sub(r"\s", "_", name)
+
+
+def _align(names, data, path):
+    """The file's pixels and mask in the rig's camera order, `(C_rig, P, ...)`; the file's
+    cameras are matched to the rig's by name (also as written to OpenCV or COLMAP files)."""
+    import numpy as np
+
+    index = {name: i for i, name in enumerate(names)}
+    P = len(data.points)
+    pixels = np.full((len(names), P, 2), np.nan)
+    mask = np.zeros((len(names), P), bool)
+    for j, camera in enumerate(data.cameras):
+        spellings = (camera, _identifier(camera), _no_spaces(camera))
+        i = next((index[n] for n in spellings if n in index), None)
+        if i is None:
+            shown = ", ".join(repr(n) for n in names[:4]) + (", ..." if len(names) > 4 else "")
+            raise ValueError(f"{path}: camera {camera!r} is not in the rig ({shown}).")
+        pixels[i], mask[i] = data.pixels[j], data.mask[j]
+    return pixels, mask
+
+
+def _calibrated(cameras):
+    """Per camera: are all its parameters finite (failed cameras are saved as NaN)?"""
+    import jax
+    import numpy as np
+
+    leaves = jax.tree_util.tree_leaves(cameras)
+    return np.all([np.isfinite(np.asarray(a)).reshape(len(a), -1).all(-1) for a in leaves], 0)
+
+
+def _table(names, report, status=None) -> str:
+    """Table I with the cameras' names."""
+    import numpy as np
+
+    cols = [
+        np.asarray(getattr(report, k)).reshape(-1)
+        for k in ("mean_x", "mean_y", "rms", "max", "n_points")
+    ]
+    width = max(6, *(len(n) for n in names))
+    lines = [
+        "Table I: back-projection error per camera (pixels; reprojected - observed)",
+        f"{'camera':<{width}} {'mean err x':>11} {'mean err y':>11} {'RMS':>9} {'max':>9} "
+        f"{'points':>6}" + ("  status" if status is not None else ""),
+    ]
+    for i, (mx, my, rms, largest, n) in enumerate(zip(*cols)):
+        line = f"{names[i]:<{width}} {mx:>11.4f} {my:>11.4f} {rms:>9.4f} {largest:>9.4f} {n:>6}"
+        lines.append(line + (f"  {status[i]}" if status is not None else ""))
+    return "\n".join(lines)
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
+
+
+# ---------------------------------------------------------------------------- calibrate
+def _calibrate(args) -> int:
+    import numpy as np
+
+    from . import io
+    from ._pipeline import calibrate
+    from ._status import Status
+
+    say = _progress(args)
+    data = io.load_correspondences(args.correspondences)
+    if data.world is None:
+        raise ValueError(
+            f"{args.correspondences}: no world_x, world_y, world_z columns; calibrate needs "
+            "3-D/2-D correspondences (2-D tracks go to `mvcalib triangulate`)."
+        )
+    C, P = data.mask.shape
+    say(
+        f"read {_count(C, 'camera')}, {_count(P, 'point')}, "
+        f"{_count(int(data.mask.sum()), 'observation')} from {args.correspondences}"
+    )
+    refine = False
+    if args.refine or args.distortion is not None:
+        refine = {} if args.distortion is None else {"distortion": args.distortion}
+    steps = "DLT, decomposition" + (
+        ", Levenberg-Marquardt refinement" if refine is not False else ""
+    )
+    say(f"calibrating: {steps} (the first run compiles)")
+    result = calibrate(data.world, np.nan_to_num(data.pixels), data.mask, refine=refine)
+    status = np.asarray(result.status)
+    ok = status == Status.OK
+    print(_table(data.cameras, result.report, [Status(int(s)).name.lower() for s in status]))
     out = pathlib.Path(args.out)
-    if not out.parent.is_dir():
-        parser.error(f"the folder of --out does not exist: {out.parent}")
+    if args.format == "json":
+        meta = {"correspondences": str(args.correspondences), "refined": refine is not False}
+        if refine is not False:
+            meta["distortion"] = list(refine.get("distortion", ("k1", "k2", "p1", "p2")))
+        io.save_json(
+            out, result.cameras, names=data.cameras, status=status, rms=result.report.rms, meta=meta
+        )
+        written = C
+    else:
+        keep = np.flatnonzero(ok)
+        if not keep.size:
+            raise _Failed(f"no camera could be calibrated; {out} not written.")
+        cameras, names = result.cameras[keep], [data.cameras[i] for i in keep]
+        if args.format == "opencv":
+            io.save_opencv(
+                out, cameras, names=_unique(map(_identifier, names)), image_size=args.image_size
+            )
+        else:
+            io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
+        written = len(keep)
+    print()
+    for i in np.flatnonzero(~ok):
+        print(f"{data.cameras[i]}: {Status(int(status[i])).message}")
+    print(
+        f"{int(ok.sum())} of {C} cameras calibrated; {_count(written, 'camera')} written to "
+        f"{out} ({args.format})"
+    )
+    return 0 if ok.all() else 1
+
+
+def _unique(names) -> list[str]:
+    out, seen = [], set()
+    for name in names:
+        candidate, k = name, 1
+        while candidate in seen:
+            k += 1
+            candidate = f"{name}_{k}"
+        seen.add(candidate)
+        out.append(candidate)
+    return out
+
+
+# ---------------------------------------------------------------------------- detect
+def _detect(args) -> int:
+    import numpy as np
+
+    from . import io
+    from ._detect import detect_dots
+    from ._images import read_image
+    from ._label import label_dots
+    from .targets import box_corner
+
+    say = _progress(args)
+    target = box_corner()
+    M = 0 if args.no_label else len(target.points)
+    names, pixels, masks, unlabelled, rows, failed = [], [], [], [], [], 0
+    for k, path in enumerate(args.images):
+        name = str(path)
+        names.append(name)
+        pixels.append(np.full((M, 2), np.nan))
+        masks.append(np.zeros(M, bool))
+        blobs, found = "-", 0
+        try:
+            detection = detect_dots(read_image(path), dark_dots=not args.bright_dots)
+        except ValueError as error:
+            unlabelled.append(np.zeros((0, 2)))
+            message, failed = str(error).removeprefix(f"{name}: "), failed + 1
+        else:
+            blobs, centroids = len(detection), np.asarray(detection.centroids)
+            if args.no_label:
+                unlabelled.append(centroids)
+                message = f"{_count(len(detection), 'dot')} detected"
+            else:
+                labels = label_dots(detection, target)
+                message = labels.message
+                if labels.ok:
+                    pixels[-1], masks[-1] = labels.pixels, labels.mask
+                    unlabelled.append(centroids[labels.spurious])
+                    found = int(labels.mask.sum())
+                else:
+                    unlabelled.append(centroids)
+                    failed += 1
+        rows.append((name, blobs, found, message))
+        say(f"[{k + 1}/{len(args.images)}] {name}: {message}")
+    io.save_correspondences(
+        args.out,
+        None if args.no_label else target.points,
+        np.stack(pixels).reshape(len(names), M, 2),
+        np.stack(masks).reshape(len(names), M),
+        cameras=names,
+        points=[str(i) for i in range(M)],
+        unlabelled=unlabelled,
+    )
+    width = max(5, *(len(n) for n in names))
+    print(f"{'image':<{width}}  blobs  {'labelled' if not args.no_label else '':>8}  result")
+    for name, blobs, found, message in rows:
+        labelled = "" if args.no_label else str(found)
+        print(f"{name:<{width}}  {blobs!s:>5}  {labelled:>8}  {message}")
+    what = "read" if args.no_label else "labelled"
+    print(f"\n{len(names) - failed} of {len(names)} images {what}; dots written to {args.out}")
+    return 0 if not failed else 1
+
+
+# ---------------------------------------------------------------------------- report
+def _report(args) -> int:
+    import numpy as np
+
+    from . import io
+    from ._report import reprojection_report
+
+    say = _progress(args)
+    if args.plot:
+        from . import plot
+
+        try:
+            plot.require_matplotlib()
+        except ImportError as error:
+            raise _Failed(str(error)) from None
+    cameras, names = _load_rig(args.rig)
+    data = io.load_correspondences(args.correspondences)
+    if data.world is None:
+        raise ValueError(
+            f"{args.correspondences}: no world_x, world_y, world_z columns to "
+            "reproject; a report needs 3-D/2-D correspondences."
+        )
+    pixels, mask = _align(names, data, args.correspondences)
+    calibrated = _calibrated(cameras)
+    mask &= calibrated[:, None]
+    if not mask.any():
+        raise ValueError(
+            f"no calibrated camera of {args.rig} sees a point of {args.correspondences}."
+        )
+    n_seen = _count(int(mask.sum()), "observation")
+    say(f"reprojecting {n_seen} with {_count(len(names), 'camera')}")
+    report = reprojection_report(cameras, data.world, np.nan_to_num(pixels), mask)
+    status = ["" if c else "not calibrated" for c in calibrated]
+    status = [s or ("no points" if n == 0 else "") for s, n in zip(status, report.n_points)]
+    print(_table(names, report, status if any(status) else None))
+    r = np.asarray(report.residuals)[mask]
+    length = np.linalg.norm(r, axis=-1)
+    c, p = np.argwhere(mask)[np.argmax(length)]
+    print(
+        f"\nall cameras: {_count(len(length), 'observation')}, RMS "
+        f"{np.sqrt(np.mean(length**2)):.4f} px, median {np.median(length):.4f} px, 95th "
+        f"percentile {np.percentile(length, 95):.4f} px, max {length.max():.4f} px "
+        f"(camera {names[c]!r}, point {data.points[p]!r})"
+    )
+    if args.plot:
+        say("drawing the figure")
+        figure = plot.report_figure(
+            cameras, data.world, pixels, mask, names=names, image_size=args.image_size
+        )
+        plot.save_figure(figure, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- triangulate
+def _triangulate(args) -> int:
+    import csv
+    import io as text_io
+
+    import numpy as np
+
+    from . import io
+    from ._triangulate import triangulate
+
+    say = _progress(args)
+    cameras, names = _load_rig(args.rig)
+    tracks = io.load_correspondences(args.tracks)
+    pixels, mask = _align(names, tracks, args.tracks)
+    calibrated = _calibrated(cameras)
+    mask &= calibrated[:, None]
+    P = len(tracks.points)
+    say(
+        f"triangulating {_count(P, 'point')} from {_count(len(names), 'camera')} "
+        f"({_count(int(mask.sum()), 'observation')})" + (", refined" if args.refine else "")
+    )
+    out = triangulate(
+        cameras, np.nan_to_num(pixels), mask, refine=args.refine, min_angle=args.min_angle
+    )
+    points, views, rms, angle, ok = (
+        np.asarray(a) for a in (out.points, out.views, out.rms, out.angle, out.ok)
+    )
+    made = views >= 2
+    buffer = text_io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(
+        ["point", "world_x", "world_y", "world_z", "views", "rms_px", "angle_deg", "ok"]
+    )
+    for i, name in enumerate(tracks.points):
+        numbers = [*points[i], rms[i], angle[i]] if made[i] else [""] * 5
+        numbers = [repr(float(v)) if v != "" else "" for v in numbers]
+        writer.writerow([name, *numbers[:3], int(views[i]), *numbers[3:], int(ok[i])])
+    io.write_atomic(args.out, buffer.getvalue())
+    print(
+        f"{made.sum()} of {_count(P, 'point')} triangulated (seen by 2 cameras or more), "
+        f"{ok.sum()} ok (in front of their cameras, rays >= {args.min_angle:g} deg apart)"
+    )
+    if made.any():
+        print(
+            f"reprojection RMS per point: median {np.median(rms[made]):.4f} px, max "
+            f"{rms[made].max():.4f} px"
+        )
+    if made.any() and not ok.any():
+        depth = np.asarray(cameras.depth(np.nan_to_num(points)))  # (C, P)
+        behind = np.sum(np.where(mask, depth < 0, False), 0) > mask.sum(0) / 2
+        if behind[made].mean() > 0.5:
+            print(
+                "note: the points lie behind the cameras that see them, so none is ok: the "
+                "rig's world frame is mirrored (left-handed, as in the Oxford VGG data)"
+            )
+    if tracks.world is not None and made.any():
+        distance = np.linalg.norm(points[made] - tracks.world[made], axis=-1)
+        print(
+            f"distance to the world coordinates in {args.tracks}: median "
+            f"{np.median(distance):.4g}, max {distance.max():.4g}"
+        )
+    print(f"points written to {args.out}")
+    if not made.any():
+        raise _Failed("no point is seen by two calibrated cameras of the rig.")
+    return 0
+
+
+# ---------------------------------------------------------------------------- images, demo
+def _calibrate_images(args) -> int:
     from . import io
     from ._images import calibrate_images
 
@@ -160,7 +694,7 @@ def _calibrate_images(parser, args) -> int:
     )
     print(result)
     io.save_json(
-        out,
+        args.out,
         result.cameras,
         names=result.names,
         status=result.calibration.status,
@@ -168,8 +702,63 @@ def _calibrate_images(parser, args) -> int:
         meta={"target": "box corner, 19 dots", "messages": result.messages},
     )
     n_ok = int(result.ok.sum())
-    print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {out}")
+    print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
     return 0 if n_ok == len(result.names) else 1
+
+
+def _demo(args) -> int:
+    import numpy as np
+
+    from . import demo
+
+    say = _progress(args)
+    if args.images:
+        say("rendering the 4 snapshots, then detect, label, calibrate, register")
+        shown = demo.run_images(seed=args.seed, figure=args.figure or None)
+        print(demo.format_images(shown))
+        code = 0 if shown.result.ok.all() else 1
+        cameras, pixels, mask = shown.result.cameras, shown.result.pixels, shown.result.mask
+    else:
+        noise, global_noise = (0.0, 0.0) if args.noise_free else (args.noise, args.global_noise)
+        say("running the paper's experiment (the first run compiles)")
+        dtype = np.float32 if args.float32 else np.float64
+        try:
+            shown = demo.run(noise=noise, global_noise=global_noise, seed=args.seed, dtype=dtype)
+        except ValueError as error:  # includes CalibrationError
+            raise _Failed(str(error)) from None
+        print(demo.format_result(shown))
+        code = 0
+        cameras = shown.calibration.cameras
+        pixels, mask = np.asarray(shown.scene.pixels), np.asarray(shown.scene.mask)
+    if args.save:
+        from . import io
+
+        folder = pathlib.Path(args.save)
+        folder.mkdir(exist_ok=True)
+        names = [f"snapshot_{i + 1}" for i in range(len(mask))]
+        io.save_json(folder / "rig.json", cameras, names=names)
+        io.save_correspondences(
+            folder / "correspondences.csv",
+            np.asarray(shown.scene.world),
+            np.where(mask[..., None], pixels, np.nan),
+            mask,
+            cameras=names,
+        )
+        print(
+            f"\nthe snapshots' cameras and dots written to {folder / 'rig.json'} and "
+            f"{folder / 'correspondences.csv'}"
+        )
+    return code
+
+
+COMMANDS = {
+    "calibrate": _calibrate,
+    "detect": _detect,
+    "report": _report,
+    "triangulate": _triangulate,
+    "calibrate-images": _calibrate_images,
+    "demo": _demo,
+}
 
 
 if __name__ == "__main__":
