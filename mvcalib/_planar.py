@@ -14,16 +14,26 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _validate
-from ._bundle import RigRefinement, refine_rig
 from ._camera import Camera
 from ._pipeline import CalibrationError
-from ._refine import Cauchy, Huber
+from ._refine import (
+    _RESULT_MESSAGES,
+    DISTORTION,
+    PARAMETERS,
+    Cauchy,
+    Huber,
+    _free_parameters,
+    _robust_weights,
+    default_solver,
+)
 from ._registration import RigidTransform
 from ._report import ReprojectionReport, compute_report, format_table
-from ._rotation import nearest_rotation
+from ._rotation import nearest_rotation, rodrigues
 from ._status import Status
 
 MIN_PLANE_POINTS = 4  # a homography has 8 degrees of freedom; each point gives 2 equations
+SHARED = ("alpha_u", "alpha_v", "u0", "v0", "skew", *DISTORTION)  # one value for every view
+POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # one per view
 
 _MESSAGES = {
     Status.OK: "calibrated",
@@ -54,8 +64,9 @@ class PlanarCalibration(eqx.Module):
     - `condition`: condition number of the linear system for the intrinsics (`s_1 / s_{p-1}`
       of the normalised `V b = 0`, p = 6 unknowns with skew, 5 without): large means the views
       barely constrain the intrinsics (too similar orientations).
-    - `refinement`: the `RigRefinement` of the joint Levenberg–Marquardt step (its `result` and
-      `iterations`), or None with `refine=False`.
+    - `iterations`: Levenberg–Marquardt steps of the refinement (0 with `refine=False`).
+    - `result`: its outcome, the integer index of an `optx.RESULTS` member (0 = successful, also
+      with `refine=False`); `converged` is `result == 0`, `result_message()` spells it out.
     """
 
     camera: Camera
@@ -66,7 +77,8 @@ class PlanarCalibration(eqx.Module):
     rms: Float[Array, ""]
     status: Int[Array, " V"]
     condition: Float[Array, ""]
-    refinement: RigRefinement | None = None
+    iterations: Int[Array, ""]
+    result: Int[Array, ""]
 
     @property
     def K(self) -> Float[Array, "3 3"]:
@@ -86,18 +98,29 @@ class PlanarCalibration(eqx.Module):
     def ok(self) -> Bool[Array, " V"]:
         return self.status == Status.OK
 
+    @property
+    def converged(self) -> Bool[Array, ""]:
+        return self.result == 0
+
+    def result_message(self) -> str:
+        return _RESULT_MESSAGES[int(self.result)]
+
     def messages(self) -> list[str]:
         """One line per view, saying whether and why it failed."""
         return [_MESSAGES[Status(int(s))] for s in np.asarray(self.status).reshape(-1)]
 
     def raise_if_failed(self) -> PlanarCalibration:
-        """Raise `CalibrationError` naming every view that failed; return self otherwise."""
+        """Raise `CalibrationError` naming every view that failed, or saying why the refinement
+        did not converge; return self otherwise."""
         status = np.asarray(self.status).reshape(-1)
         bad = np.flatnonzero(status != Status.OK)
-        if bad.size:
-            lines = [f"view {i}: {_MESSAGES[Status(int(status[i]))]}" for i in bad]
+        lines = [f"view {i}: {_MESSAGES[Status(int(status[i]))]}" for i in bad]
+        if int(self.result) != 0:
+            lines.append(f"refinement: {self.result_message()}")
+        if lines:
             raise CalibrationError(
-                f"{bad.size} of {status.size} views failed:\n" + "\n".join(lines)
+                f"planar calibration failed ({bad.size} of {status.size} views):\n"
+                + "\n".join(lines)
             )
         return self
 
@@ -199,29 +222,35 @@ def _v(H, i, j):
     )
 
 
-def _intrinsics(H, ok, T, skew: bool, rcond):
+def _intrinsics(H, ok, T, skew, rcond):
     """Zhang's closed form: K from the homographies H (V, 3, 3) of the views with `ok`.
 
     The homographies are first expressed in normalised pixels (`T`, a similarity), so that the
     unknowns of B = K^-T K^-1 have comparable sizes; K = T^-1 K' keeps the triangular form.
+    `skew` is a traced boolean, so both models share one compiled function.
     """
     Hn = T @ H
     Hn = Hn / jnp.linalg.norm(Hn, axis=(-2, -1), keepdims=True)
     # eq. 9: the two constraints per view, r1 . r2 = 0 and |r1| = |r2|
     rows = jax.vmap(lambda h: jnp.stack([_v(h, 0, 1), _v(h, 0, 0) - _v(h, 1, 1)]))(Hn)
     rows = jnp.where(ok[:, None, None], rows, 0.0).reshape(-1, 6)
-    if not skew:  # B12 = -gamma / (alpha^2 beta) = 0: drop its column
-        rows = rows[:, jnp.array([0, 2, 3, 4, 5])]
+    # Zero skew is B12 = -gamma / (alpha^2 beta) = 0: B12's column is removed from the data and
+    # replaced by one row c e2 with c >= every singular value of the rest, so the smallest
+    # singular vector is exactly the 5-unknown solution with B12 = 0.
+    e2 = jnp.zeros(6, rows.dtype).at[1].set(1.0)
+    rows = jnp.where(skew, rows, rows * (1.0 - e2))
+    rows = jnp.concatenate([rows, jnp.where(skew, 0.0, jnp.linalg.norm(rows)) * e2[None]])
     b, sv = _smallest_right_singular(rows)
-    if not skew:
-        b = jnp.concatenate([b[:1], jnp.zeros_like(b[:1]), b[1:]])
+    b = b * jnp.where(skew, 1.0, 1.0 - e2)  # exactly 0, not 1e-17
     B = jnp.array([[b[0], b[1], b[3]], [b[1], b[2], b[4]], [b[3], b[4], b[5]]])
     B = B * jnp.sign(B[0, 0])  # B is positive definite up to the SVD's sign
     # B = K^-T K^-1 = L L^T (Cholesky) with K^-1 = L^T upper triangular; NaN unless B > 0.
     K_inv = jnp.linalg.cholesky(B).T
     Kn = jnp.linalg.inv(K_inv)
     Kn = Kn / Kn[2, 2]
-    K = jnp.linalg.solve(T, Kn)
+    s, c = T[0, 0], -T[:2, 2] / T[0, 0]  # T^-1 of the similarity, explicitly: exact zeros stay
+    T_inv = jnp.array([[1 / s, 0, c[0]], [0, 1 / s, c[1]], [0, 0, 1]], dtype=T.dtype)
+    K = T_inv @ Kn
     condition = sv[0] / sv[-2]
     determined = (sv[-2] > rcond * sv[0]) & jnp.all(jnp.isfinite(K))
     return K, condition, determined
@@ -239,8 +268,8 @@ def _pose(K, H, plane, mask):
     return R, t
 
 
-@functools.partial(jax.jit, static_argnames=("skew", "rcond"))
-def _closed_form(world, plane, pixels, mask, skew: bool, rcond: float):
+@functools.partial(jax.jit, static_argnames="rcond")
+def _closed_form(world, plane, pixels, mask, skew, rcond: float):
     """Homographies, intrinsics and poses for validated input, in one compiled call."""
     # Hidden points are replaced before any arithmetic, so their values (even NaN) never count.
     pixels = jnp.where(mask[..., None], pixels, 0.0)
@@ -258,7 +287,6 @@ def _closed_form(world, plane, pixels, mask, skew: bool, rcond: float):
     R, t = R @ plane.R, jnp.einsum("vij,j->vi", R, plane.t) + t
     V = pixels.shape[0]
     camera = Camera.from_matrices(jnp.broadcast_to(K, (V, 3, 3)), R, t)
-    camera = _nan_where(status != Status.OK, camera)
     return H, camera, status, condition
 
 
@@ -267,13 +295,67 @@ def _nan_where(failed, camera: Camera) -> Camera:
     return jax.tree_util.tree_map(lambda x: jnp.where(expand(x), jnp.nan, x), camera)
 
 
+# ------------------------------------------------------------------------------ refinement
+# One least-squares problem over the shared intrinsics and distortion and every view's pose,
+# like `refine_rig(..., shared_intrinsics=True)` but compiled as one function in which the
+# choice of free parameters is data (a 0/1 mask on the increments), not shape: Zhang's model with
+# skew and OpenCV's without, any `distortion` or `fix`, share one compilation.
+def _planar_unknowns(y, args):
+    p0, R0, t0, scale, distance, free_shared, free_pose = args[:7]
+    p = p0 + y["shared"] * scale * free_shared
+    w = y["views"][:, :3] * free_pose[:3]  # axis-angle increments on the seed's rotations
+    dt = y["views"][:, 3:] * free_pose[3:] * distance[:, None]
+    return Camera(p[0], p[1], p[2], p[3], rodrigues(w) @ R0, t0 + dt, skew=p[4], dist=p[5:])
+
+
+def _planar_residuals(y, args):
+    world, pixels, mask, loss = args[7:]
+    r = _planar_unknowns(y, args).project(world) - pixels
+    r = jnp.where(mask[..., None], r, 0.0)
+    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+
+
+@eqx.filter_jit
+def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
+    """Refine the closed-form rig; views that failed (`~ok`) get a harmless seed, no points,
+    (and NaN in the result, from `_finish`)."""
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=camera.R.dtype), camera.R.shape)
+    camera = eqx.tree_at(
+        lambda c: (c.R, c.t),
+        camera,
+        (jnp.where(ok[:, None, None], camera.R, eye), jnp.where(ok[:, None], camera.t, 1.0)),
+    )
+    mask = mask & ok[:, None]
+    first = camera[0]  # the intrinsics are every view's
+    p0 = jnp.concatenate(
+        [jnp.stack([first.alpha_u, first.alpha_v, first.u0, first.v0, first.skew]), first.dist]
+    )
+    # natural units: pixels of focal length for the intrinsics, the view's distance for t
+    f = jnp.abs(p0[0])
+    scale = jnp.concatenate([jnp.full(5, f), jnp.ones(5, p0.dtype)])
+    distance = jnp.linalg.norm(camera.t, axis=-1)
+    pixels = jnp.where(mask[..., None], pixels, 0.0)
+    args = (p0, camera.R, camera.t, scale, distance, free_shared, free_pose,
+            world, pixels, mask, loss)  # fmt: skip
+    y0 = {"shared": jnp.zeros_like(p0), "views": jnp.zeros((len(distance), 6), p0.dtype)}
+    sol = optx.least_squares(_planar_residuals, solver, y0, args, max_steps=max_steps, throw=False)
+    return _planar_unknowns(sol.value, args), sol.stats["num_steps"], sol.result._value  # noqa: SLF001
+
+
+def _free_masks(distortion, fix, skew, dtype):
+    free = {PARAMETERS[i] for i in _free_parameters(distortion, fix, skew)}
+    mask = lambda names: jnp.asarray([n in free for n in names], dtype)  # noqa: E731
+    return mask(SHARED), mask(POSE)
+
+
 @jax.jit
-def _finish(camera, world, pixels, mask, status):
-    """The report per view and the pooled RMS, over the views that succeeded."""
-    report = compute_report(camera, world, pixels, mask & (status == Status.OK)[:, None])
+def _finish(closed, camera, world, pixels, mask, ok):
+    """NaN for the views that failed; the report per view and the pooled RMS of the others."""
+    closed, camera = _nan_where(~ok, closed), _nan_where(~ok, camera)
+    report = compute_report(camera, world, pixels, mask & ok[:, None])
     n = jnp.sum(report.n_points)
     rms = jnp.sqrt(jnp.sum(report.residuals**2) / jnp.maximum(n, 1))
-    return report, rms
+    return closed, camera, report, rms
 
 
 # ------------------------------------------------------------------------------ validation
@@ -349,8 +431,9 @@ def calibrate_planar(
     3. Each view's pose from `K^-1 H` (eq. 10), the rotation made orthonormal by
        `mvcalib.nearest_rotation`.
     4. With `refine=True` (default), one Levenberg–Marquardt problem over the shared intrinsics,
-       the distortion and every view's pose (`mvcalib.refine_rig` with `shared_intrinsics=True`:
-       the views are the rig, the target is its fixed world), starting from zero distortion.
+       the distortion and every view's pose (what `mvcalib.refine_rig` with
+       `shared_intrinsics=True` does, with the views as the rig and the target as its fixed
+       world, compiled once for any choice of free parameters), starting from zero distortion.
 
     The model is `Camera.project`: distortion `(k1, k2, p1, p2, k3)` in normalised coordinates
     before `K`, so Zhang's radial model `x (1 + k1 r^2 + k2 r^4)` is `distortion=("k1", "k2")`,
@@ -368,8 +451,10 @@ def calibrate_planar(
     - `distortion`: which of `("k1", "k2", "p1", "p2", "k3")` the refinement estimates;
       `()` for a pinhole camera.
     - `refine`: run step 4; without it the result is the closed form (no distortion).
-    - `fix`, `loss`, `solver`, `max_steps`: passed to `refine_rig` (e.g.
-      `fix="principal_point"`, `loss=mc.Huber(1.0)`).
+    - `fix`, `loss`, `solver`, `max_steps`: as for `mvcalib.refine` (e.g.
+      `fix="principal_point"`, `loss=mc.Huber(1.0)`); `fix` names from `("alpha_u", "alpha_v",
+      "u0", "v0", "skew", "k1", "k2", "p1", "p2", "k3")` and `"rotation"`, `"translation"`,
+      `"pose"` (for every view) or their groups.
     - `rcond`: relative singular-value threshold below which a homography or the intrinsics'
       system counts as degenerate; default sqrt(machine epsilon).
 
@@ -423,30 +508,18 @@ def calibrate_planar(
     else:
         plane = RigidTransform.identity(dtype)  # traced: the user's z = 0 plane is assumed
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
-    H, closed, status, condition = _closed_form(world, plane, pixels, mask, bool(skew), rcond)
-    camera, refinement = closed, None
-    if refine and _validate.is_concrete(status) and bool(jnp.any(status == Status.OK)):
-        # Refine the views that succeeded; the others stay NaN.
-        keep = np.flatnonzero(np.asarray(status) == Status.OK)
-        every = len(keep) == pixels.shape[0]
-        select = (lambda x: x) if every else (lambda x: x[keep])  # noqa: E731
-        refinement = refine_rig(
-            jax.tree_util.tree_map(select, closed),
-            world,
-            jnp.where(select(mask)[..., None], select(pixels), 0.0),
-            select(mask),
-            shared_intrinsics=True,
-            distortion=distortion,
-            fix=fix,
-            skew=skew,
-            loss=loss,
-            solver=solver,
-            max_steps=max_steps,
+    free_shared, free_pose = _free_masks(distortion, fix, skew, dtype)  # checks the names
+    skew = jnp.asarray(bool(skew))
+    H, seed, status, condition = _closed_form(world, plane, pixels, mask, skew, rcond)
+    ok = status == Status.OK
+    if refine:
+        solver = default_solver(dtype) if solver is None else solver
+        camera, iterations, result = _refine_views(
+            seed, ok, world, pixels, mask, free_shared, free_pose, loss, solver, int(max_steps)
         )
-        camera = refinement.cameras
-        if not every:
-            camera = jax.tree_util.tree_map(lambda c, r: c.at[keep].set(r), closed, camera)
-    report, rms = _finish(camera, world, pixels, mask, status)
+    else:
+        iterations = result = jnp.zeros((), jnp.int32)
+    closed, camera, report, rms = _finish(seed, camera if refine else seed, world, pixels, mask, ok)
     return PlanarCalibration(
         camera=camera,
         closed_form=closed,
@@ -456,5 +529,6 @@ def calibrate_planar(
         rms=rms,
         status=status,
         condition=condition,
-        refinement=refinement,
+        iterations=jnp.asarray(iterations, jnp.int32),
+        result=jnp.asarray(result, jnp.int32),
     )
