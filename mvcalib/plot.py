@@ -41,6 +41,14 @@ def _host(cameras: Camera) -> Camera:
     return rig
 
 
+def _calibrated(rig: Camera) -> np.ndarray:
+    """Per camera: are all its parameters finite (a failed calibration is NaN)?"""
+    import jax
+
+    leaves = jax.tree_util.tree_leaves(rig)
+    return np.all([np.isfinite(a).reshape(len(a), -1).all(-1) for a in leaves], axis=0)
+
+
 def _image_sizes(rig: Camera, image_size, pixels=None) -> np.ndarray:
     """(C, 2) width and height: given, or guessed from the principal point (at the middle of
     most sensors), grown to hold every observed pixel."""
@@ -48,8 +56,8 @@ def _image_sizes(rig: Camera, image_size, pixels=None) -> np.ndarray:
         return np.broadcast_to(np.asarray(image_size, dtype=float), (len(rig.u0), 2))
     size = np.stack([2 * rig.u0 + 1, 2 * rig.v0 + 1], -1)
     if pixels is not None:
-        with np.errstate(invalid="ignore"):
-            size = np.fmax(size, np.ceil(np.nanmax(pixels, axis=1) + 0.5))
+        seen = np.where(np.isfinite(pixels), pixels, -np.inf).max(axis=1)  # -inf: none seen
+        size = np.fmax(size, np.ceil(seen + 0.5))
     return np.where(np.isfinite(size), size, 1.0)
 
 
@@ -95,7 +103,7 @@ def plot_rig(
 
     ```python
     >>> import jax, mvcalib as mc, mvcalib.plot
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3)
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.5)
     >>> ax = mc.plot.plot_rig(rig.cameras, rig.world)
     >>> len(ax.lines)  # per camera: four rays and the far rectangle; then X, Y, Z
     18
@@ -108,7 +116,7 @@ def plot_rig(
     if ax is None:
         ax = require_matplotlib()(figsize=(6, 5)).add_subplot(projection="3d")
     centres = np.asarray(rig.center)
-    ok = np.all(np.isfinite(centres), -1) & np.all(np.isfinite(rig.R), (-1, -2))
+    ok = _calibrated(rig)
     world = None if world is None else np.asarray(world, dtype=float).reshape(-1, 3)
     anchor = np.median(world, 0) if world is not None else np.median(centres[ok], 0)
     if frustum_depth is None:
@@ -211,10 +219,10 @@ def plot_residuals(
 
     ```python
     >>> import jax, mvcalib as mc, mvcalib.plot
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2, noise=0.5)
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.5)
     >>> axes, scale = mc.plot.plot_residuals(rig.cameras, rig.world, rig.pixels)
-    >>> len(axes), scale
-    (2, 20.0)
+    >>> len(axes), scale  # one round magnification for every camera
+    (3, 50.0)
 
     ```
     """
@@ -286,7 +294,7 @@ def plot_histograms(cameras: Camera, world, pixels, mask=None, *, axes=None, bin
 
     ```python
     >>> import jax, mvcalib as mc, mvcalib.plot
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2, noise=0.5)
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.5)
     >>> components, lengths = mc.plot.plot_histograms(rig.cameras, rig.world, rig.pixels)
     >>> components.get_xlabel()
     'residual (px)'
@@ -347,7 +355,7 @@ def report_figure(
 
     ```python
     >>> import jax, mvcalib as mc, mvcalib.plot
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.3)
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3, noise=0.5)
     >>> figure = mc.plot.report_figure(rig.cameras, rig.world, rig.pixels, rig.mask)
     >>> len(figure.axes)  # 3-D rig, two histograms, three cameras
     6
