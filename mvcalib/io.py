@@ -13,6 +13,7 @@ import json
 import math
 import os
 import pathlib
+import stat
 import tempfile
 
 import jax
@@ -39,6 +40,15 @@ def write_atomic(path, data: str | bytes) -> pathlib.Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode) as f:
+            # mkstemp makes the file private (0600); give it the permissions a plain open()
+            # would: those of the file it replaces, or 0666 less the umask.
+            try:
+                permissions = stat.S_IMODE(os.stat(path).st_mode)
+            except OSError:
+                umask = os.umask(0o022)
+                os.umask(umask)
+                permissions = 0o666 & ~umask
+            os.chmod(tmp, permissions)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

@@ -147,3 +147,19 @@ def test_malformed_json_and_wrong_suffix_are_refused(tmp_path):
             tmp_path / "c.csv", None, np.full((1, 3, 2), np.nan), np.ones((1, 3), bool)
         )
     assert not (tmp_path / "c.csv").exists()  # nothing written
+
+
+def test_written_files_get_the_permissions_a_plain_open_would_give(tmp_path):
+    import os
+
+    umask = os.umask(0o027)
+    try:
+        new = mc.io.write_atomic(tmp_path / "new.txt", "x")
+        assert new.stat().st_mode & 0o777 == 0o640  # 0666 less the umask, not mkstemp's 0600
+        old = tmp_path / "old.txt"
+        old.write_text("before")
+        old.chmod(0o604)
+        mc.io.write_atomic(old, "after")
+        assert old.stat().st_mode & 0o777 == 0o604 and old.read_text() == "after"
+    finally:
+        os.umask(umask)
