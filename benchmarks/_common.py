@@ -87,7 +87,7 @@ def first_and_warm(fn, *, warm_calls: int = 3):
         t0 = time.perf_counter()
         fn()
         warm.append(time.perf_counter() - t0)
-    return first, float(np.median(warm)), out
+    return first, float(np.median(warm)) if warm else float("nan"), out
 
 
 def tracemalloc_peak_mb(fn) -> float:

@@ -24,8 +24,10 @@ import argparse
 import importlib
 import json
 import os
+import resource
 import sys
 import time
+import traceback
 from pathlib import Path
 
 PARTS = ("bound", "dlt", "refine", "triangulate", "detect", "startup")
@@ -36,9 +38,75 @@ def _flags(name: str, mode: str) -> list[str]:
     flags = {"quick": ["--quick"], "smoke": ["--smoke"], "full": []}[mode]
     if name == "bound":
         flags = [*flags, "--no-xla"]  # dlt.py and triangulate.py report XLA's costs themselves
-    if name == "detect" and mode == "smoke":
-        flags = ["--smoke"]
+    if name == "startup" and mode == "quick":
+        # The entry points compile in dlt.py, refine.py and triangulate.py already; a quick run
+        # takes their compile times from there instead of compiling them all again.
+        flags = [*flags, "--entry-points", ""]
     return flags
+
+
+def compile_rows(payloads) -> list[dict]:
+    """Compile times: startup.py's, and (quick) those measured by refine.py / triangulate.py."""
+    rows = list(payloads.get("startup", {}).get("compile", []))
+    measured = {r["entry_point"] for r in rows}
+    if "dlt" in payloads:
+        cell = next(
+            c
+            for c in payloads["dlt"]["results"]
+            if [c["n_cameras"], c["n_points"]] == payloads["dlt"]["settings"]["headline"]
+        )
+        setting = f"{cell['n_cameras']} cameras x {cell['n_points']} points (dlt.py)"
+        found = {p["path"]: p for p in cell["paths"]}
+        for entry, path in (
+            ("mc.calibrate", "calibrate()"),
+            ("mc.dlt + Camera.from_projection (one jit)", "mvcalib"),
+        ):
+            if entry not in measured and path in found:
+                p = found[path]
+                rows.append(
+                    {
+                        "entry_point": entry,
+                        "setting": setting,
+                        "first_call_s": p["first_call_s"],
+                        "warm_call_s": p["warm_call_s"],
+                        "compile_s": p["compile_s"],
+                    }
+                )
+        decomposition = payloads["dlt"].get("decomposition")
+        if "mc.Camera.from_projection" not in measured and decomposition:
+            rows.append(
+                {
+                    "entry_point": "mc.Camera.from_projection",
+                    "setting": f"{decomposition['n_cameras']} cameras (dlt.py)",
+                    "first_call_s": None,
+                    "warm_call_s": None,
+                    "compile_s": decomposition["mvcalib_compile_s"],
+                }
+            )
+    if "mc.refine" not in measured and "refine" in payloads:
+        r = payloads["refine"]["results"][-1]
+        first = r["mvcalib_first_call_s"]
+        rows.append(
+            {
+                "entry_point": "mc.refine",
+                "setting": f"{r['n_cameras']} cameras x {r['n_points']} points (refine.py)",
+                "first_call_s": first,
+                "warm_call_s": first - r["mvcalib_compile_s"],
+                "compile_s": r["mvcalib_compile_s"],
+            }
+        )
+    if "mc.triangulate" not in measured and "triangulate" in payloads:
+        r = payloads["triangulate"]["results"][0]
+        rows.append(
+            {
+                "entry_point": "mc.triangulate",
+                "setting": f"{r['points_timed']} points x {r['views']} views (triangulate.py)",
+                "first_call_s": None,
+                "warm_call_s": None,
+                "compile_s": r["compile_s"],
+            }
+        )
+    return rows
 
 
 # ---------------------------------------------------------------------------------- report
@@ -46,7 +114,7 @@ def _cell(x, spec, width):
     return f"{'—':>{width}}" if x is None else f"{x:>{width}{spec}}"
 
 
-def print_summary(rows, payloads, wall, mode):
+def print_summary(rows, payloads, wall, mode, parts):
     limits = payloads["bound"]["limits"] if "bound" in payloads else None
     print("\n" + "=" * 118)
     print(f"SUMMARY ({mode} run; every figure from this run)")
@@ -99,20 +167,23 @@ def print_summary(rows, payloads, wall, mode):
                 f"x bound {p['mvcalib']['x_bound']:>6.1f}  "
                 f"max|ΔRMS| vs SVD {p['mvcalib']['rms_max_abs_diff_vs_numpy_svd_px']:.1e} px"
             )
-    if "startup" in payloads:
+    compiles = compile_rows(payloads)
+    if compiles:
         print("\njit compile time (first call - warm call):")
-        print(
-            "  "
-            + ", ".join(
-                f"{r['entry_point']} {r['compile_s']:.2f} s" for r in payloads["startup"]["compile"]
-            )
-        )
+        for r in compiles:
+            print(f"  {r['entry_point']:<27}{r['compile_s']:>7.2f} s  ({r['setting']})")
+    if "startup" in payloads:
         for r in payloads["startup"]["cold_start"]:
             print(
                 f"cold start `python -m mvcalib demo`, cache {r['cache']}: {r['exit_s']:.1f} s "
                 f"to exit ({r['first_output_s']:.1f} s to first output)"
             )
-    print(f"\nsuite wall time {wall:.1f} s ({mode})")
+    print(f"\nsuite wall time {wall:.1f} s ({mode}); per part, wall / CPU (user + sys, this")
+    print("process and its children; CPU > wall: both cores; wall > CPU: waiting for a busy CPU):")
+    print(
+        "  "
+        + ", ".join(f"{n} {t['wall_time_s']:.0f} / {t['cpu_s']:.0f} s" for n, t in parts.items())
+    )
 
 
 def plot(payloads, path):
@@ -181,6 +252,15 @@ def plot(payloads, path):
 
 
 # ---------------------------------------------------------------------------------- main
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process and its finished children."""
+    own, children = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     group = parser.add_mutually_exclusive_group()
@@ -200,13 +280,20 @@ def main(argv=None) -> int:
     common.RESULTS_DIR.mkdir(parents=True, exist_ok=True)
 
     wall = time.perf_counter()
-    payloads, part_wall = {}, {}
+    payloads, part_times, failed = {}, {}, {}
     for name in parts:
         print(f"\n{'#' * 30} {name} {' '.join(_flags(name, mode))} {'#' * 30}\n", flush=True)
-        module = importlib.import_module(f"benchmarks.{name}")
-        start = time.perf_counter()
-        payloads[name] = module.main(_flags(name, mode))
-        part_wall[name] = time.perf_counter() - start
+        start, cpu = time.perf_counter(), _cpu_seconds()
+        try:
+            module = importlib.import_module(f"benchmarks.{name}")
+            payloads[name] = module.main(_flags(name, mode))
+        except Exception:  # report it, run the other parts, fail at the end
+            traceback.print_exc()
+            failed[name] = traceback.format_exc(limit=-3)
+        part_times[name] = {
+            "wall_time_s": time.perf_counter() - start,
+            "cpu_s": _cpu_seconds() - cpu,
+        }
         sys.stdout.flush()
 
     rows = [
@@ -215,20 +302,21 @@ def main(argv=None) -> int:
         for r in payloads.get(name, {}).get("summary", [])
     ]
     wall = time.perf_counter() - wall
-    print_summary(rows, payloads, wall, mode)
+    print_summary(rows, payloads, wall, mode, part_times)
     plot_path = common.results_path("summary.png")
     plot(payloads, plot_path)
     summary = {
         "benchmark": "suite",
         "mode": mode,
         "command": "python -m benchmarks" + {"full": "", "quick": " --quick"}.get(mode, " --smoke"),
-        "machine": payloads[parts[0]]["machine"],
+        "machine": next(iter(payloads.values()), {}).get("machine"),
         "limits": payloads.get("bound", {}).get("limits"),
-        "parts": {name: {"wall_time_s": part_wall[name]} for name in parts},
+        "parts": part_times,
         "skipped": [p for p in PARTS if p not in parts],
+        "failed": failed,
         "summary": rows,
         "dlt_grid": payloads.get("dlt", {}).get("results"),
-        "compile": payloads.get("startup", {}).get("compile"),
+        "compile": compile_rows(payloads),
         "cold_start": payloads.get("startup", {}).get("cold_start"),
         "plot": plot_path.name,
         "wall_time_s": wall,
@@ -236,7 +324,9 @@ def main(argv=None) -> int:
     path = common.results_path("summary.json")
     path.write_text(json.dumps(summary, indent=2) + "\n")
     print(f"summary written to {path}")
-    return 0
+    if failed:
+        print(f"FAILED: {', '.join(failed)} (tracebacks above and in summary.json)")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__" and not __package__:
