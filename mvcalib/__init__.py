@@ -40,6 +40,7 @@ from ._report import ReprojectionReport as ReprojectionReport
 from ._report import reprojection_report as reprojection_report
 from ._rotation import nearest_rotation as nearest_rotation
 from ._rotation import rodrigues as rodrigues
+from ._sharding import shard as shard
 from ._status import Status as Status
 from ._triangulate import Triangulation as Triangulation
 from ._triangulate import reproject as reproject
