@@ -139,7 +139,7 @@ def plot_rig(
         ax.text(*f[0], f" {names[i]}", color=colours[i], fontsize=9)
         drawn.append(f)
     if world is not None:
-        ax.scatter(*world.T, s=6, color="0.2", depthshade=False, label="points")
+        ax.scatter(*world.T, s=10, color="0.2", depthshade=False, label="points")
         drawn.append(world)
     everything = np.vstack(drawn)
     extent = float(np.ptp(everything, 0).max()) or 1.0
@@ -282,11 +282,14 @@ def _rectangle(w, h):
     return Rectangle((-0.5, -0.5), w, h, fill=False, ec="0.6", lw=1)
 
 
-def plot_histograms(cameras: Camera, world, pixels, mask=None, *, axes=None, bins: int = 40):
+def plot_histograms(
+    cameras: Camera, world, pixels, mask=None, *, axes=None, bins: int | None = None
+):
     """Histograms of the residuals over all cameras: the x and y components, and the lengths.
 
     **Arguments:** as for `plot_residuals`; `axes` is a pair of matplotlib axes (default: a new
-    figure's).
+    figure's); `bins` per histogram (default twice the square root of the number of
+    observations, between 10 and 40).
 
     **Returns:** the two axes.
 
@@ -316,6 +319,7 @@ def plot_histograms(cameras: Camera, world, pixels, mask=None, *, axes=None, bin
         limit = min(float(length.max()), 5 * rms) or 1.0
         outside = int(np.sum(length > limit))
         beyond = f"; {outside} beyond {limit:.3g} px not shown" if outside else ""
+        bins = int(np.clip(2 * np.sqrt(len(r)), 10, 40)) if bins is None else int(bins)
         edges = np.linspace(-limit, limit, bins + 1)
         components.hist(r[:, 0], edges, histtype="step", lw=1.5, label="x", color="tab:blue")
         components.hist(r[:, 1], edges, histtype="step", lw=1.5, label="y", color="tab:orange")
