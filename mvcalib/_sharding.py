@@ -72,18 +72,19 @@ def shard(tree, mesh: Mesh | None = None, *, axis: int | None = 0):
     **Example:**
 
     ```python
-    >>> import jax, mvcalib as mc
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=4)
-    >>> pixels, mask = mc.shard((rig.pixels, rig.mask))  # camera axis over all devices
-    >>> pixels.sharding.num_devices == jax.device_count(), pixels.shape
-    (True, (4, 19, 2))
-    >>> result = mc.calibrate(rig.world, pixels, mask)
-    >>> result.P.sharding.is_equivalent_to(pixels.sharding, 3)  # split the same way
+    >>> import jax, jax.numpy as jnp, mvcalib as mc
+    >>> rig = mc.Camera(alpha_u=jnp.array([800.0, 850.0, 900.0, 950.0]), alpha_v=800.0,
+    ...                 u0=320.0, v0=240.0, R=jnp.eye(3), t=jnp.array([0.0, 0.0, 5.0]))
+    >>> split = mc.shard(rig)  # 4 cameras over all devices
+    >>> split.R.sharding.num_devices == jax.device_count()
     True
-    >>> bool(result.ok.all())
-    True
+    >>> pixels = mc.reproject(split, jnp.array([[1.0, 0.0, 0.0]]))  # each device its cameras
+    >>> pixels.sharding.is_equivalent_to(split.t.sharding, 3), pixels[:, 0, 0].tolist()
+    (True, [480.0, 490.0, 500.0, 510.0])
 
     ```
+
+    Calibration the same way: `mc.calibrate(world, *mc.shard((pixels, mask)))`.
     """
     mesh = _auto_mesh(mesh)
     if axis is not None and (isinstance(axis, bool) or not isinstance(axis, int) or axis < 0):
