@@ -14,8 +14,10 @@ Run from the repository root:
     python -m benchmarks [--quick | --smoke] [--results DIR] [--only dlt,triangulate]
     python benchmarks/run.py [--quick]
 
-`--quick` takes under 2 minutes on a quiet 2-core machine; `--smoke` is a tiny run (bound, DLT
-and triangulation at toy sizes) for the test that the suite works.
+`--quick` is the short version (a few DLT cells, short rounds, slow peers on a subset of the
+cameras); the wall and CPU time of every part are printed at the end (mvcalib's compilations
+and the demo's cold start take most of it). `--smoke` is a tiny run (bound, DLT and
+triangulation at toy sizes) for the test that the suite works.
 """
 
 from __future__ import annotations
@@ -245,6 +247,16 @@ def plot(payloads, path):
         right.set_xlabel("peer time / mvcalib time (> 1: mvcalib faster)")
         right.set_title("mvcalib against each peer")
         right.grid(True, axis="x", which="both", alpha=0.3)
+    first = next(iter(payloads.values()), {})
+    machine = first.get("machine") or {}
+    load = machine.get("load_average")
+    fig.suptitle(
+        f"python -m benchmarks ({first.get('mode', '?')}), {first.get('date', '')}, "
+        f"{machine.get('cpu_count')} CPUs, jax {machine.get('jax')}"
+        + (f", load average {load[0]:.1f} at the start" if load else "")
+        + "; figures from this one run",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -264,7 +276,7 @@ def _cpu_seconds() -> float:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--quick", action="store_true", help="every benchmark's --quick; < 2 min")
+    group.add_argument("--quick", action="store_true", help="every benchmark's --quick")
     group.add_argument("--smoke", action="store_true", help="tiny sizes (the smoke test)")
     parser.add_argument("--results", type=Path, help="directory for the JSON and the plot")
     parser.add_argument("--only", help=f"comma-separated subset of {','.join(PARTS)}")
