@@ -61,9 +61,9 @@ class PlanarCalibration(eqx.Module):
     - `report`: reprojection errors per view (Table I; `report.rms` is `view_rms`).
     - `rms`: the reprojection RMS over every visible point of the views that succeeded.
     - `status`: a `Status` per view; `ok` is `status == Status.OK`; `messages()` says why.
-    - `condition`: condition number of the linear system for the intrinsics (`s_1 / s_{p-1}`
-      of the normalised `V b = 0`, p = 6 unknowns with skew, 5 without): large means the views
-      barely constrain the intrinsics (too similar orientations).
+    - `condition`: condition number of the normalised linear system `V b = 0` for the
+      intrinsics (largest over second-smallest singular value): large means the views barely
+      constrain the intrinsics (too similar orientations).
     - `iterations`: Levenberg–Marquardt steps of the refinement (0 with `refine=False`).
     - `result`: its outcome, the integer index of an `optx.RESULTS` member (0 = successful, also
       with `refine=False`); `converged` is `result == 0`, `result_message()` spells it out.

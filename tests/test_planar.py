@@ -159,6 +159,24 @@ def test_hidden_points_have_no_influence(distorted):
     np.testing.assert_array_equal(np.asarray(again.camera.t), np.asarray(out.camera.t))
 
 
+def test_a_degenerate_view_is_flagged_and_the_others_still_calibrate(distorted):
+    pixels, mask, _ = distorted
+    line = mask.copy()
+    line[2, 16:] = False  # view 2 sees one row of the grid: 16 collinear points, no homography
+    out = mc.calibrate_planar(WORLD, pixels, line)
+    status = np.asarray(out.status)
+    assert status[2] == mc.Status.DEGENERATE and np.all(np.delete(status, 2) == mc.Status.OK)
+    assert "collinear" in out.messages()[2]
+    assert np.all(np.isnan(np.asarray(out.camera.t[2])))
+    K, dist, R, t = arrays(out)
+    assert relative(K, K_TRUE) < 1e-8  # four views determine the camera exactly
+    np.testing.assert_allclose(dist, DIST, atol=1e-9)
+    assert relative(np.delete(t, 2, 0), np.delete(T_TRUE, 2, 0)) < 1e-8
+    assert int(out.report.n_points[2]) == 0 and np.isfinite(float(out.rms))
+    with pytest.raises(mc.CalibrationError, match="view 2: degenerate"):
+        out.raise_if_failed()
+
+
 # ------------------------------------------------------------------------------ OpenCV
 def test_agrees_with_opencv_calibrate_camera(noisy):
     cv2 = pytest.importorskip("cv2")
