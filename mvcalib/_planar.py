@@ -442,7 +442,9 @@ def calibrate_planar(
     **Arguments:**
 
     - `world`: the target's points, shared by every view: `(N, 2)` plane coordinates, or
-      `(N, 3)` points on one plane (any plane; the poses are returned in this frame).
+      `(N, 3)` points on one plane (any plane; the poses are returned in this frame; a
+      `world` traced by `jax.jit` must lie in `z = 0`, as the plane is found from concrete
+      values).
     - `pixels`: `(V, N, 2)` observations, `(x = column, y = row)`.
     - `mask`: `(V, N)` visibility; hidden points (even NaN) have no influence.
     - `skew`: estimate the skew `K[0, 1]` (Zhang's gamma) — then at least 3 views are needed;
