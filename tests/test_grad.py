@@ -1,0 +1,384 @@
+"""Derivatives of every public numeric function against central finite differences (float64).
+
+Each check perturbs the inputs along one random direction (each element scaled by its own size,
+so that a focal length of 1000 px and a distortion coefficient of 0.1 move by the same relative
+step) and compares
+
+- forward mode, `jax.jvp`, with `(f(x + h v) - f(x - h v)) / 2h`, element by element, and
+- reverse mode, `jax.grad` of a random linear functional of the outputs, dotted with `v`,
+
+see `check_derivatives`. Directional derivatives rather than full Jacobians keep every check to
+one compiled function whatever the input size.
+
+Not differentiable, and not tested here: `detect_dots`, `label_dots`, `read_image`,
+`calibrate_images` (NumPy/scikit-image on pixel grids: thresholds, connected components and the
+choice of which blob is which dot are discrete, so the output is piecewise constant in the image)
+and `bundle_adjust` (a host-side loop that samples tracks and drops outliers by threshold; its
+inner `refine_rig` is differentiable). See docs/differentiability.md.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import mvcalib as mc
+
+DIST = jnp.array([-0.2, 0.1, 1e-3, -1e-3, 0.01])  # k1, k2, p1, p2, k3 (OpenCV order)
+
+
+def _inexact_leaves(tree):
+    return [x for x in jax.tree_util.tree_leaves(tree) if eqx.is_inexact_array(x)]
+
+
+def check_derivatives(f, x, *, reverse=False, rel_step=1e-6, rtol=1e-5, seed=0):
+    """Derivatives of `f` at the pytree `x` along a random direction against central differences.
+
+    The direction `v` is standard normal per element, times the size of the element it moves
+    (the RMS of its array where the element is zero), and `x +- rel_step * v` are the two
+    evaluations. Every floating output array of `jax.jvp` must agree with the difference
+    quotient to `rtol` relative to that array's largest entry. With `reverse`, also the
+    reverse-mode directional derivative `<jax.grad(<w, f>), v>` (random `w`) must agree with
+    `<w, difference quotient>`. One compiled function gives the values and the derivatives, so
+    a check costs one compilation. Returns that gradient (a pytree like `x`), or None.
+    """
+    rng = np.random.default_rng(seed)
+    leaves, treedef = jax.tree_util.tree_flatten(x)
+    v = []
+    for leaf in leaves:
+        a = np.abs(np.asarray(leaf))
+        rms = float(np.sqrt(np.nanmean(a**2))) or 1.0
+        size = np.where(a > 1e-9 * rms, a, rms)
+        v.append(jnp.asarray(np.nan_to_num(size) * rng.standard_normal(a.shape), leaf.dtype))
+    v = jax.tree_util.tree_unflatten(treedef, v)
+    outputs = lambda x: _inexact_leaves(f(x))  # noqa: E731
+    w = [rng.standard_normal(np.shape(o)) for o in jax.eval_shape(outputs, x)]
+
+    @jax.jit
+    def derivatives(x, v):
+        y, jvp = jax.jvp(outputs, (x,), (v,))
+        functional = lambda x: sum(jnp.vdot(wi, o) for wi, o in zip(w, outputs(x)))  # noqa: E731
+        return y, jvp, jax.grad(functional)(x) if reverse else None
+
+    _, jvp, grad = derivatives(x, v)
+    step = lambda s: jax.tree_util.tree_map(lambda a, b: a + s * rel_step * b, x, v)  # noqa: E731
+    plus, minus = derivatives(step(1.0), v)[0], derivatives(step(-1.0), v)[0]
+    fd = [(np.asarray(p) - np.asarray(m)) / (2 * rel_step) for p, m in zip(plus, minus)]
+    assert len(fd) > 0
+    for i, (a, b) in enumerate(zip(jvp, fd)):
+        a = np.asarray(a)
+        assert np.all(np.isfinite(a)), f"output {i}: non-finite forward derivative"
+        scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
+        np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * scale, err_msg=f"output {i}")
+    if reverse:
+        g_leaves = [np.asarray(g) for g in jax.tree_util.tree_leaves(grad)]
+        assert all(np.all(np.isfinite(g)) for g in g_leaves), "non-finite gradient"
+        along_v = sum(float(np.vdot(g, d)) for g, d in zip(g_leaves, jax.tree_util.tree_leaves(v)))
+        expected = sum(float(np.vdot(wi, d)) for wi, d in zip(w, fd))
+        np.testing.assert_allclose(along_v, expected, rtol=rtol, err_msg="reverse mode")
+    return grad
+
+
+def look_at(centre, target, focal, principal=(500.0, 550.0)):
+    """A camera at `centre` looking at `target` (x right, y down, z up in the world)."""
+    z = (target - centre) / np.linalg.norm(target - centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+# ----------------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def scene():
+    """Three cameras around the 19-dot box corner (built in NumPy: no compilation), pixels.
+
+    Returns `(pinhole, distorted, world, pixels, distorted_pixels)`; `pixels` is
+    `(2, 3, 19, 2)`: noise-free and with 0.3 px of noise; `distorted_pixels` noisy.
+    """
+    world = mc.targets.box_corner().points
+    middle = world.mean(0)
+    directions = np.array([[1.0, 0.8, 0.9], [0.7, 1.2, 0.8], [1.1, 1.0, 1.3]])
+    poses = [look_at(middle + 800 * d / np.linalg.norm(d), middle, 0) for d in directions]
+    R, t = (np.stack(a) for a in zip(*poses))
+    focal = np.array([1200.0, 1500.0, 1000.0])
+    pinhole = mc.Camera(focal, 1.01 * focal, [500.0, 480, 520], [550.0, 560, 530], R, t)
+    distorted = eqx.tree_at(lambda c: c.dist, pinhole, jnp.broadcast_to(DIST, (3, 5)))
+    noise = 0.3 * np.random.default_rng(0).standard_normal((3, 19, 2))
+    exact = np.asarray(pinhole.project(world))
+    pixels = jnp.asarray(np.stack([exact, exact + noise]))
+    return pinhole, distorted, jnp.asarray(world), pixels, distorted.project(world) + noise
+
+
+# ------------------------------------------------------------------------ the camera model
+def test_project_and_derived_quantities_are_differentiable(scene):
+    _, cams, world, _, _ = scene
+
+    def f(a):
+        c, w = a
+        return c.project(w), c.K, c.center, c.projection_matrix(), c.depth(w)
+
+    grad = check_derivatives(f, (cams, world), reverse=True)
+    # the gradient with respect to a camera is a camera
+    assert isinstance(grad[0], mc.Camera)
+    assert jax.tree_util.tree_structure(grad[0]) == jax.tree_util.tree_structure(cams)
+    check_derivatives(lambda m: mc.Camera.from_matrices(*m, dist=DIST), (cams.K, cams.R, cams.t))
+
+
+def test_distort_and_undistort_points_are_differentiable(scene):
+    # undistort_points: Newton steps converged to rounding, so its derivative is that of the
+    # exact inverse, w.r.t. the pixels and every camera parameter (distortion included)
+    _, cams, _, _, pixels = scene
+    xy = jnp.asarray(np.random.default_rng(1).uniform(-0.5, 0.5, (20, 2)))
+    check_derivatives(
+        lambda a: (mc.distort(a[0], a[1]), mc.undistort_points(a[2], a[3])),
+        (xy, DIST, cams, pixels),
+    )
+
+
+def test_image_plane_conversions_are_differentiable():
+    xy = jnp.asarray(np.random.default_rng(2).normal(size=(5, 2)))
+    check_derivatives(
+        lambda a: (
+            mc.image_to_pixel(a, (0.0045, 0.0047), image_size=(1000, 1100)),
+            mc.pixel_to_image(a, (0.0045, 0.0047), center=(500, 550)),
+        ),
+        xy,
+    )
+
+
+def test_rotations_are_differentiable_also_where_the_svd_derivative_is_not():
+    # rodrigues at 0 (its Taylor branch) and elsewhere; nearest_rotation of general matrices and
+    # of exact rotations, whose three singular values are all 1 (there the SVD's derivative
+    # divides by zero; the optimality-condition derivative is exact)
+    rng = np.random.default_rng(3)
+    rvec = jnp.asarray(np.concatenate([np.zeros((1, 3)), rng.normal(size=(3, 3))]))
+    H = jnp.concatenate([jnp.asarray(rng.normal(size=(3, 3, 3))), mc.rodrigues(rvec)])
+    check_derivatives(lambda a: (mc.rodrigues(a[0]), mc.nearest_rotation(a[1])), (rvec, H),
+                      reverse=True)  # fmt: skip
+
+
+# ------------------------------------------------------------------- DLT and decomposition
+def test_dlt_and_decomposition_are_differentiable_and_ignore_hidden_points(scene):
+    # Noise-free pixels (the DLT system's smallest singular value is zero: the derivative needs
+    # only the gap to the next one; the decomposed R is orthogonal) and noisy ones (R is
+    # re-orthogonalised); both decompositions (with skew, and the paper's). Two points are
+    # hidden, one of them NaN: it must reach neither the values nor the derivatives.
+    _, _, world, pixels, _ = scene
+    hidden = [2, 11]
+    mask = np.ones(pixels.shape[1:3], bool)
+    mask[:, hidden] = False
+    pixels = pixels.at[:, :, 2].set(jnp.nan)
+
+    def f(a):  # what mc.calibrate does in one call
+        w, p = a
+        P = mc.dlt(w, p, mask)
+        cameras = mc.Camera.from_projection(P)
+        paper = mc.Camera.from_projection(P, skew=False)
+        report = mc.reprojection_report(cameras, w, p, mask)
+        # (the RMS of exactly zero residuals, a norm at 0, has no derivative: noisy ones only)
+        return P, cameras, paper, report.rms[1], report.mean_x, report.mean_y
+
+    g_world, g_pixels = check_derivatives(f, (world, pixels), reverse=True)
+    assert np.all(np.asarray(g_pixels)[:, :, hidden] == 0.0)
+    assert np.all(np.asarray(g_world)[hidden] == 0.0)
+    assert np.all(np.abs(np.asarray(g_pixels)[:, :, mask[0]]).sum(-1) > 0)
+
+
+# ---------------------------------------------------------------------------- registration
+def test_procrustes_is_differentiable_also_at_a_symmetric_configuration():
+    # Batch 0: the corners of a cube, moved exactly: the cross-covariance is a multiple of a
+    # rotation, with three equal singular values, where the SVD's derivative is undefined.
+    # Batch 1: random points with noise and random weights.
+    rng = np.random.default_rng(5)
+    cube = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T * 100.0
+    src = jnp.asarray(np.stack([cube, rng.normal(scale=100.0, size=(8, 3))]))
+    T = mc.RigidTransform(mc.rodrigues(jnp.array([0.3, -0.2, 0.5])), jnp.array([10.0, 0, 5]))
+    dst = T.apply(src) + jnp.asarray(np.stack([np.zeros((8, 3)), rng.normal(size=(8, 3))]))
+    w = jnp.asarray(np.stack([np.ones(8), rng.uniform(0.5, 2.0, size=8)]))
+    check_derivatives(
+        lambda a: (mc.procrustes(*a), mc.procrustes_paper(a[0], a[1])), (src, dst, w), reverse=True
+    )
+
+
+def test_rigid_transforms_and_to_global_are_differentiable(scene):
+    _, cams, world, _, _ = scene
+    rng = np.random.default_rng(6)
+    a = mc.RigidTransform(mc.rodrigues(jnp.asarray(rng.normal(size=3))), rng.normal(size=3))
+    b = mc.RigidTransform(mc.rodrigues(jnp.asarray(rng.normal(size=3))), 100 * rng.normal(size=3))
+
+    def f(x):
+        a, b, c = x
+        return (a @ b).apply(world), a.inverse().as_matrix(), mc.to_global(c, b)
+
+    check_derivatives(f, (a, b, cams))
+
+
+# --------------------------------------------------------------- reports and reconstruction
+def test_reprojection_report_is_differentiable(scene):
+    _, cams, world, _, pixels = scene
+    mask = np.ones(pixels.shape[:2], bool)
+    mask[1, :4] = False
+
+    def report(a):
+        r = mc.reprojection_report(*a, mask)
+        return r.mean_x, r.mean_y, r.rms, r.max, r.residuals
+
+    check_derivatives(report, (cams, world, pixels))
+
+
+def test_triangulate_and_reproject_are_differentiable(scene):
+    # with distortion: undistortion, normalisation and the 4 x 4 eigenvector are all inside
+    _, cams, world, _, pixels = scene
+
+    def f(a):
+        c, px, w = a
+        tri = mc.triangulate(c, px)
+        return tri.points, tri.rms, tri.angle, mc.reproject(c, w), mc.reproject(c, tri)
+
+    # (rtol 1e-4: the RMS of 0.3 px residuals curves on the scale of 0.3 px, and the relative
+    # step moves pixels by ~1e-3 px)
+    check_derivatives(f, (cams, pixels[:, :8], world), rtol=1e-4)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="triangulate: reverse-mode gradients w.r.t. the cameras are NaN when any point has "
+    "fewer than 2 views (0 * inf in the backward pass of selected-away values in frame(): "
+    "sqrt of a zero spread, focal / tiny, eigh of an all-zero system)",
+)
+def test_points_seen_by_fewer_than_two_cameras_leave_the_gradient_finite(scene):
+    _, cams, _, _, pixels = scene
+    mask = np.ones((3, 8), bool)
+    mask[1:, 0] = False  # point 0 in one view only: no 3-D point, but no NaN gradient either
+    loss = lambda c: jnp.sum(mc.triangulate(c, pixels[:, :8], mask).points[1:])  # noqa: E731
+    grad = jax.grad(loss)(cams)
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree_util.tree_leaves(grad))
+
+
+def test_triangulate_with_refinement_is_differentiable(scene):
+    # The polished point is the minimum of its reprojection error: implicit derivative. The
+    # solver stops at a relative step of 1e-10, so the differences take a larger step.
+    _, cams, _, _, pixels = scene
+    check_derivatives(
+        lambda p: mc.triangulate(cams, p, refine=True).points, pixels[:, :3], rel_step=1e-4,
+        rtol=1e-4,
+    )  # fmt: skip
+
+
+def test_refine_gradient_is_implicit_and_ignores_the_seed():
+    """The refined camera is a function of the data only: implicit differentiation through the
+    optimum gives the pixels' influence, and zero for the seed's free parameters."""
+    world = mc.targets.box_corner_grid(3).points
+    R, t = look_at(world.mean(0) + np.array([500.0, 400.0, 450.0]), world.mean(0), 0)
+    truth = mc.Camera(1100.0, 1110.0, 510.0, 540.0, R, t, dist=DIST)
+    noise = 0.3 * np.random.default_rng(7).standard_normal((len(world), 2))
+    pixels = truth.project(world) + noise
+    seed = eqx.tree_at(lambda c: (c.alpha_u, c.dist), truth, (1.01 * truth.alpha_u, jnp.zeros(5)))
+    # Gauss-Newton converges to rounding here, so the finite differences measure the optimum's
+    # motion rather than where Levenberg-Marquardt's iterations happen to stop; the implicit
+    # derivative is the same whichever solver found the optimum.
+    solver = optx.GaussNewton(rtol=1e-12, atol=1e-12)
+    w = np.random.default_rng(8).standard_normal(5)
+
+    def f(seed, px):
+        out = mc.refine(seed, world, px, distortion=("k1", "k2"), solver=solver)
+        c = out.cameras
+        return jnp.vdot(w, jnp.stack([c.alpha_u, c.v0, c.dist[0], c.t[2], c.R[0, 2]])), out.ok
+
+    value_and_grad = jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True))
+    (_, ok), (g_seed, g_px) = value_and_grad(seed, pixels)
+    assert bool(ok)
+    v = np.random.default_rng(9).standard_normal(pixels.shape)
+    h = 1e-5  # px
+    at = lambda s: float(value_and_grad(seed, pixels + s * h * v)[0][0])  # noqa: E731
+    np.testing.assert_allclose(np.vdot(g_px, v), (at(1) - at(-1)) / (2 * h), rtol=1e-6)
+    # The seed's free parameters have no influence on the optimum, nor has a rotation of the
+    # seed's R (the tangent hat(omega) R); the fixed ones (p1, p2, k3, skew) are held at the
+    # seed's values and do.
+    for name in ("alpha_u", "alpha_v", "u0", "v0", "t"):
+        np.testing.assert_allclose(getattr(g_seed, name), 0.0, atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(g_seed.dist[:2], 0.0, atol=1e-9)
+    for omega in np.eye(3):
+        tangent = np.cross(omega, np.asarray(seed.R), axisb=0, axisc=0)  # hat(omega) @ R
+        assert abs(np.vdot(g_seed.R, tangent)) < 1e-9 * np.abs(g_seed.R).max()
+    assert np.abs(g_seed.dist[2:]).max() > 0 and abs(float(g_seed.skew)) > 0
+
+
+# ------------------------------------------------------------------------ pytrees compose
+def test_camera_and_transform_are_pytrees(scene):
+    _, cams, world, _, _ = scene
+    T = mc.RigidTransform(mc.rodrigues(jnp.array([0.1, 0.2, 0.3])), jnp.array([1.0, 2, 3]))
+    for tree in (cams, T):
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        back = jax.tree_util.tree_unflatten(treedef, leaves)
+        assert type(back) is type(tree)
+        assert all(np.array_equal(a, b) for a, b in zip(leaves, jax.tree_util.tree_leaves(back)))
+    doubled = jax.tree_util.tree_map(lambda x: 2 * x, cams)
+    np.testing.assert_allclose(doubled.alpha_u, 2 * cams.alpha_u)
+
+
+def test_filter_jit_and_filter_vmap_see_through_cameras(scene):
+    _, cams, world, _, _ = scene
+    expected = np.asarray(cams.project(world))
+    project = eqx.filter_jit(lambda c, w: c.project(w))
+    np.testing.assert_allclose(project(cams, world), expected, rtol=1e-12)
+    # one camera in the function, the rig's axis by vmap: the same as the batched call
+    one_by_one = eqx.filter_vmap(lambda c: c.project(world))(cams)
+    np.testing.assert_allclose(one_by_one, expected, rtol=1e-12)
+    # one transform per camera, vmapped together with the cameras
+    T = mc.RigidTransform(mc.rodrigues(0.2 * jnp.eye(3)), 10.0 * jnp.eye(3))
+    moved = eqx.filter_vmap(lambda t, c: mc.to_global(c, t).project(t.apply(world)))(T, cams)
+    np.testing.assert_allclose(moved, expected, rtol=1e-9)
+    # per-camera gradients: vmap of grad over the rig, jitted; a Camera comes back
+    grads = eqx.filter_jit(jax.vmap(jax.grad(lambda c: jnp.sum(c.project(world)))))(cams)
+    assert isinstance(grads, mc.Camera) and grads.batch_shape == (3,)
+    np.testing.assert_allclose(
+        grads.u0, np.full(3, len(world)), rtol=1e-12
+    )  # d(sum of pixels)/du0 = N
+
+
+def test_fitting_a_rig_inside_a_users_own_loss(scene):
+    """A user's loss on top of Camera.project (a pseudo-Huber reprojection error of their own),
+    minimised by plain gradient steps: no optimistix, no optax."""
+    _, cams, world, _, pixels = scene
+    # start from the true rig, each camera turned by ~1 degree and moved by ~1 %
+    rng = np.random.default_rng(6)
+    start = eqx.tree_at(
+        lambda c: (c.R, c.t),
+        cams,
+        (
+            mc.rodrigues(jnp.asarray(rng.normal(scale=0.01, size=(3, 3)))) @ cams.R,
+            cams.t * (1 + 0.01 * rng.normal(size=(3, 1))),
+        ),
+    )
+    distance = jnp.linalg.norm(start.t, axis=-1, keepdims=True)
+
+    # parameters: an axis-angle increment per camera (so that R stays a rotation) and the
+    # translation in units of the camera's distance
+    def rig_from(params):
+        R = mc.rodrigues(params["w"]) @ start.R
+        return eqx.tree_at(lambda c: (c.R, c.t), start, (R, start.t + params["t"] * distance))
+
+    def loss(params):
+        r = rig_from(params).project(world) - pixels
+        return jnp.mean(jnp.sqrt(1.0 + jnp.sum(r * r, -1)) - 1.0)
+
+    params = {"w": jnp.zeros((3, 3)), "t": jnp.zeros((3, 3))}
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    history = []
+    for _ in range(50):
+        value, g = value_and_grad(params)
+        history.append(float(value))
+        params = jax.tree_util.tree_map(lambda p, d: p - 3e-6 * d, params, g)
+    history.append(float(loss(params)))
+    print(f"user loss {history[0]:.3f} -> {history[-1]:.3f}")
+    assert np.all(np.diff(history) < 0)
+    assert history[-1] < 0.6 * history[0]
+
+    def angle(c):  # radians from the true rotation
+        return np.arccos((np.trace(c.R @ np.swapaxes(cams.R, -1, -2), axis1=1, axis2=2) - 1) / 2)
+
+    assert np.mean(angle(rig_from(params))) < 0.9 * np.mean(angle(start))
