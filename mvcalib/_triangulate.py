@@ -47,7 +47,11 @@ def _linear_point(P, x, m):
     # system: an order of magnitude faster batched over 10^5 points, and accurate enough after
     # the normalisation (noise-free points come back to ~1e-12 relative in float64). Its
     # derivative needs only the gap to the next eigenvalue, which a unique point has.
-    _, vectors = jnp.linalg.eigh(rows.T @ rows)
+    # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok), so
+    # that eigh never differentiates through the repeated eigenvalues of an all-zero matrix.
+    seen = jnp.sum(m) >= 2
+    G = jnp.where(seen, rows.T @ rows, jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
+    _, vectors = jnp.linalg.eigh(G)
     v = vectors[:, 0]
     return v[:3] / v[3]
 
@@ -103,10 +107,14 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps):
         w = mm.astype(centres.dtype)
         n = jnp.maximum(w.sum(), 1.0)
         middle = (w[:, None] * centres).sum(0) / n
-        spread = jnp.sqrt((w * jnp.sum((centres - middle) ** 2, -1)).sum() / n)
-        spread = jnp.where(spread > 0, spread, 1.0)
+        # `where` before `sqrt` and division: a point seen by fewer than two views has a zero
+        # spread, and its derivative must stay finite (0 * inf in the backward pass would turn
+        # the gradient of every camera into NaN, even where that point's output is not used).
+        ms = (w * jnp.sum((centres - middle) ** 2, -1)).sum() / n
+        spread = jnp.sqrt(jnp.where(ms > 0, ms, 1.0))
         t = (jnp.einsum("cij,j->ci", cameras.R, middle) + cameras.t) / spread
-        weight = focal / jnp.maximum((w * focal).sum() / n, jnp.finfo(focal.dtype).tiny)
+        mean_focal = (w * focal).sum() / n
+        weight = focal / jnp.where(mean_focal > 0, mean_focal, 1.0)
         Rt = weight[:, None, None] * jnp.concatenate([cameras.R, t[..., None]], axis=-1)
         return Rt, middle, spread
 
