@@ -562,6 +562,7 @@ def _detect(args) -> int:
 
 # ---------------------------------------------------------------------------- report
 def _report(args) -> int:
+    import jax
     import numpy as np
 
     from . import io
@@ -591,7 +592,8 @@ def _report(args) -> int:
         )
     n_seen = _count(int(mask.sum()), "observation")
     say(f"reprojecting {n_seen} with {_count(len(names), 'camera')}")
-    report = reprojection_report(cameras, data.world, np.nan_to_num(pixels), mask)
+    # One compiled computation rather than a string of eager ops (each compiled on its own).
+    report = jax.jit(reprojection_report)(cameras, data.world, np.nan_to_num(pixels), mask)
     status = ["" if c else "not calibrated" for c in calibrated]
     status = [s or ("no points" if n == 0 else "") for s, n in zip(status, report.n_points)]
     print(_table(names, report, status if any(status) else None))
@@ -662,7 +664,9 @@ def _triangulate(args) -> int:
             f"{rms[made].max():.4f} px"
         )
     if made.any() and not ok.any():
-        depth = np.asarray(cameras.depth(np.nan_to_num(points)))  # (C, P)
+        R, t = np.asarray(cameras.R), np.asarray(cameras.t)
+        depth = np.nan_to_num(points) @ R[:, 2].T + t[:, 2]  # (P, C)
+        depth = depth.T
         behind = np.sum(np.where(mask, depth < 0, False), 0) > mask.sum(0) / 2
         if behind[made].mean() > 0.5:
             print(

@@ -12,6 +12,7 @@ import io as _io
 import math
 import pathlib
 
+import jax
 import numpy as np
 
 from ._camera import Camera
@@ -31,8 +32,6 @@ def require_matplotlib():
 
 
 def _host(cameras: Camera) -> Camera:
-    import jax
-
     rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
     if rig.batch_shape == ():
         rig = jax.tree_util.tree_map(lambda a: a[None], rig)
@@ -43,8 +42,6 @@ def _host(cameras: Camera) -> Camera:
 
 def _calibrated(rig: Camera) -> np.ndarray:
     """Per camera: are all its parameters finite (a failed calibration is NaN)?"""
-    import jax
-
     leaves = jax.tree_util.tree_leaves(rig)
     return np.all([np.isfinite(a).reshape(len(a), -1).all(-1) for a in leaves], axis=0)
 
@@ -65,11 +62,13 @@ def _frustum(camera: Camera, size, depth) -> np.ndarray:
     """(5, 3) world points: the centre, then the image's four corners at `depth`."""
     w, h = size
     corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
-    rays = np.linalg.solve(np.asarray(camera.K), np.c_[corners, np.ones(4)].T).T
+    K = np.array([[camera.alpha_u, camera.skew, camera.u0], [0, camera.alpha_v, camera.v0],
+                  [0, 0, 1]], dtype=float)  # fmt: skip
+    rays = np.linalg.solve(K, np.c_[corners, np.ones(4)].T).T
     x_cam = depth * rays / rays[:, 2:]
     R, t = np.asarray(camera.R), np.asarray(camera.t)
     world = (x_cam - t) @ R  # R^T (x - t), row by row
-    return np.vstack([np.asarray(camera.center)[None], world])
+    return np.vstack([-(t @ R)[None], world])
 
 
 def plot_rig(
@@ -115,7 +114,8 @@ def plot_rig(
     names = [str(i + 1) for i in range(C)] if names is None else [str(s) for s in names]
     if ax is None:
         ax = require_matplotlib()(figsize=(6, 5)).add_subplot(projection="3d")
-    centres = np.asarray(rig.center)
+    # NumPy rather than the Camera's JAX methods: a figure needs no compiled code.
+    centres = -np.einsum("cji,cj->ci", rig.R, rig.t)
     ok = _calibrated(rig)
     world = None if world is None else np.asarray(world, dtype=float).reshape(-1, 3)
     anchor = np.median(world, 0) if world is not None else np.median(centres[ok], 0)
@@ -130,7 +130,7 @@ def plot_rig(
         camera = rig[i]
         sign = 1.0
         if world is not None:
-            depth = np.asarray(camera.depth(world))
+            depth = world @ camera.R[2] + camera.t[2]
             sign = -1.0 if np.median(depth) < 0 else 1.0
         f = _frustum(camera, sizes[i], sign * frustum_depth)
         for k in range(1, 5):
@@ -174,10 +174,16 @@ def _residuals(rig: Camera, world, pixels, mask):
     if mask is None:
         mask = np.all(np.isfinite(pixels), -1)
     mask = np.asarray(mask, dtype=bool) & np.all(np.isfinite(pixels), -1)
-    projected = np.asarray(rig.project(np.broadcast_to(world, pixels.shape[:2] + (3,))))
+    # One compiled projection (lens distortion included) rather than a string of eager ops.
+    projected = np.asarray(_project(rig, np.broadcast_to(world, pixels.shape[:2] + (3,))))
     residuals = projected - pixels  # reprojected - observed, as in Table I
     mask = mask & np.all(np.isfinite(residuals), -1)
     return np.where(mask[..., None], residuals, np.nan), pixels, mask
+
+
+@jax.jit
+def _project(cameras: Camera, world):
+    return cameras.project(world)
 
 
 def _nice(x: float) -> float:
