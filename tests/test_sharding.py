@@ -32,7 +32,12 @@ CAMERA = ("alpha_u", "alpha_v", "u0", "v0", "skew", "R", "t", "dist")
 
 @pytest.fixture(scope="module")
 def two_devices():
-    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    # Backend optimisation off: the split is decided on the HLO, before LLVM, and LLVM's
+    # optimisation of the unrolled DLT is most of the compile time (62 -> 35 s CPU for the ten
+    # programs). Both sides of every comparison are compiled alike.
+    flags = os.environ.get("XLA_FLAGS", "") + (
+        " --xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0"
+    )
     env = dict(
         os.environ,
         XLA_FLAGS=flags.strip(),
@@ -88,7 +93,8 @@ def test_sharded_calibration_equals_the_unsharded_one(two_devices):
         assert_close(compare[name], 1e-12 if name != ".cameras.skew" else 1e-11, where=name)
     for name in (".report.residuals", ".report.rms", ".report.max", ".report.mean_x"):
         assert compare[name]["absolute"] <= 1e-10, (name, compare[name])  # pixels
-    # s_1 / s_11 from eigenvalues of L^T L: relative error ~ eps * condition^2.
+    # s_1 / s_11 from eigenvalues of L^T L: relative error ~ eps * condition^2 (compared on the
+    # calibrated cameras: a degenerate camera's s_11 is rounding noise).
     assert_close(compare[".condition"], 1e-8, where="condition")
 
 
@@ -131,6 +137,8 @@ def test_sharded_triangulation_splits_the_points(two_devices):
     compare = out["compare"]
     for name in (".views", ".ok"):
         assert compare[name]["bitwise"], name
+    # (rms and angle compared on the points seen at least twice: for the others they are
+    # undefined, and come out 0 or NaN depending on rounding.)
     for name in (".points", ".rms", ".angle"):
         assert_close(compare[name], 1e-12, where=name)
     assert out["views"][7] == 0 and out["views"][9] == 1
