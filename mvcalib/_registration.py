@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from . import _validate
@@ -65,7 +67,15 @@ def _procrustes_kernel(src, dst, w):
     cd = (w[:, None] * dst).sum(0) / n
     H = ((w[:, None] * (dst - cd)).T) @ (src - cs)  # sum w (y - ȳ)(x - x̄)^T
     R = nearest_rotation(H)  # maximises sum w (y - ȳ)·R(x - x̄)
-    return R, cd - R @ cs
+    # The best rotation is unique only if H has rank >= 2. Collinear or coincident points (or
+    # fewer than 3 with non-zero weight) leave the rotation about their line free, and the SVD
+    # would return one of them as if it were the answer: NaN instead. The threshold is the DLT's
+    # (sqrt(eps)): below it, rounding alone moves R by more than sqrt(eps) radians. The test
+    # is False for NaN, which an all-zero weight vector gives.
+    sv = jnp.linalg.svd(jax.lax.stop_gradient(H), compute_uv=False)
+    determined = sv[1] > jnp.finfo(H.dtype).eps ** 0.5 * sv[0]
+    R = jnp.where(determined, R, jnp.nan)
+    return R, cd - R @ cs, determined
 
 
 def procrustes(
@@ -88,7 +98,10 @@ def procrustes(
     - `dst`: the same points in the global frame `(..., N, 3)`.
     - `weights`: optional non-negative weights `(..., N)`; a zero weight removes a point.
 
-    **Returns:** a `RigidTransform` with `dst ≈ transform.apply(src)`.
+    **Returns:** a `RigidTransform` with `dst ≈ transform.apply(src)`. Points that do not
+    determine the rotation (collinear or coincident, or fewer than 3 with non-zero weight, in
+    `src` or in `dst`) raise `ValueError`; inside `jax.jit`, where nothing can raise, that
+    transform is NaN instead of one of the many rotations that fit.
 
     **Example:**
 
@@ -119,9 +132,16 @@ def procrustes(
                 raise ValueError(f"`{name}` contains NaN or inf.")
         if bool(jnp.any(weights < 0)):
             raise ValueError("`weights` must be non-negative.")
-    R, t = jnp.vectorize(_procrustes_kernel, signature="(n,3),(n,3),(n)->(3,3),(3)")(
-        src.astype(dtype), dst.astype(dtype), weights
-    )
+    kernel = jnp.vectorize(_procrustes_kernel, signature="(n,3),(n,3),(n)->(3,3),(3),()")
+    R, t, determined = kernel(src.astype(dtype), dst.astype(dtype), weights)
+    if _validate.is_concrete(determined) and not bool(jnp.all(determined)):
+        where = np.argwhere(~np.asarray(determined))
+        at = f" (at batch index {tuple(int(i) for i in where[0])})" if where.shape[1] else ""
+        raise ValueError(
+            f"`src` and `dst` do not determine a rotation{at}: the points with non-zero weight "
+            "are collinear or coincident (in `src` or in `dst`). At least 3 non-collinear "
+            "points are needed."
+        )
     return RigidTransform(R, t)
 
 
