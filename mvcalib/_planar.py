@@ -317,8 +317,8 @@ def _planar_residuals(y, args):
 
 @eqx.filter_jit
 def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
-    """Refine the closed-form rig; views that failed (`~ok`) get a harmless seed, no points,
-    (and NaN in the result, from `_finish`)."""
+    """Refine the closed-form rig. Views that failed (`~ok`) get a harmless seed and no points
+    (`_finish` puts NaN in their place)."""
     eye = jnp.broadcast_to(jnp.eye(3, dtype=camera.R.dtype), camera.R.shape)
     camera = eqx.tree_at(
         lambda c: (c.R, c.t),
