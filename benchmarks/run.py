@@ -215,6 +215,8 @@ def plot(payloads, path):
             left.loglog(xs, ys, style, label=name, lw=2.5 if name == "mvcalib" else 1)
         bounds = [c["bound_us_per_camera"] for c in cells]
         left.loglog(Cs, bounds, "k*:", label="physical bound (bound.py)")
+        left.set_xticks(Cs, [str(C) for C in Cs])
+        left.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         left.set_xlabel("cameras C")
         left.set_ylabel("µs per camera")
         left.set_title(f"DLT + decomposition, N = {n_points} points")
@@ -264,6 +266,21 @@ def plot(payloads, path):
 
 
 # ---------------------------------------------------------------------------------- main
+def replot(common) -> int:
+    """The summary table and plot again, from the JSON files of the last run."""
+    summary = json.loads(common.results_path("summary.json").read_text())
+    payloads = {
+        name: json.loads(common.results_path(f"{name}.json").read_text())
+        for name in summary["parts"]
+        if name not in summary.get("failed", {})
+    }
+    print_summary(
+        summary["summary"], payloads, summary["wall_time_s"], summary["mode"], summary["parts"]
+    )
+    plot(payloads, common.results_path(summary["plot"]))
+    return 0
+
+
 def _cpu_seconds() -> float:
     """User + system CPU time of this process and its finished children."""
     own, children = (
@@ -280,6 +297,12 @@ def main(argv=None) -> int:
     group.add_argument("--smoke", action="store_true", help="tiny sizes (the smoke test)")
     parser.add_argument("--results", type=Path, help="directory for the JSON and the plot")
     parser.add_argument("--only", help=f"comma-separated subset of {','.join(PARTS)}")
+    parser.add_argument(
+        "--replot",
+        action="store_true",
+        help="run nothing: print the summary table and redraw summary.png from the JSON of the "
+        "last run in the results directory",
+    )
     args = parser.parse_args(argv)
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     parts = SMOKE_PARTS if args.smoke else PARTS
@@ -290,6 +313,8 @@ def main(argv=None) -> int:
     if args.results:
         common.RESULTS_DIR = args.results.resolve()
     common.RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    if args.replot:
+        return replot(common)
 
     wall = time.perf_counter()
     payloads, part_times, failed = {}, {}, {}
