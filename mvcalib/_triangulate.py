@@ -21,7 +21,8 @@ class Triangulation(eqx.Module):
 
     - `points`: `(..., N, 3)` in the cameras' (global) frame; NaN where fewer than 2 views.
     - `views`: `(..., N)` int, the number of views used.
-    - `rms`: `(..., N)` reprojection RMS over the views used, in pixels (distortion included).
+    - `rms`: `(..., N)` reprojection RMS over the views used, in pixels (distortion included);
+      NaN, like `angle`, for a point seen by fewer than two views.
     - `angle`: `(..., N)` the widest angle between two of the point's rays, in degrees: small
       angles mean depth poorly determined.
     - `ok`: `(..., N)` bool: at least 2 views, in front of every camera that sees it, and an
@@ -67,6 +68,9 @@ def _diagnostics(cameras: Camera, X, pixels, m):
     pair = m[:, None] & m[None, :]
     angle = jnp.degrees(jnp.arccos(jnp.clip(jnp.min(jnp.where(pair, cos, 1.0)), -1.0, 1.0)))
     in_front = jnp.all(jnp.where(m, cameras.depth(X[None])[:, 0] > 0, True))
+    # A point seen by fewer than two views has no position: its diagnostics are NaN, not
+    # whatever the rounding of its stand-in happened to give.
+    rms, angle = (jnp.where(n >= 2, x, jnp.nan) for x in (rms, angle))
     return n, rms, angle, in_front
 
 
