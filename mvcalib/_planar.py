@@ -15,6 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _validate
 from ._camera import Camera
+from ._dlt import _null_vector, _similarity
 from ._pipeline import CalibrationError
 from ._refine import (
     _RESULT_MESSAGES,
@@ -133,39 +134,6 @@ class PlanarCalibration(eqx.Module):
 
 
 # ------------------------------------------------------------------------------ kernels
-# (The two helpers below are the DLT's, kept here so that planar calibration does not depend on
-# the private internals of `_dlt`, which solves its 12 x 12 problem differently.)
-def _similarity(points, w):
-    """Hartley's normalisation `T` (centroid to 0, RMS distance sqrt 2) of weighted 2-D points."""
-    n = jnp.maximum(w.sum(), 1.0)
-    c = (w[:, None] * points).sum(0) / n
-    ms = (w * jnp.sum((points - c) ** 2, axis=-1)).sum() / n
-    s = jnp.sqrt(2.0 / jnp.where(ms > 0, ms, 1.0))
-    T = jnp.eye(3, dtype=points.dtype) * s
-    T = T.at[:2, 2].set(-s * c).at[2, 2].set(1.0)
-    return T, s, c
-
-
-@jax.custom_jvp
-def _null_vector(A):
-    """The unit right singular vector of `A` for its smallest singular value, and all of them."""
-    _, s, vt = jnp.linalg.svd(A, full_matrices=False)
-    return vt[-1], s
-
-
-@_null_vector.defjvp
-def _null_vector_jvp(primals, tangents):
-    # JAX's SVD derivative divides by the smallest singular value, zero for noise-free data;
-    # first-order perturbation of the smallest eigenvector of A^T A needs only the gap to the
-    # next one, which is what makes the solution unique anyway.
-    (A,), (dA,) = primals, tangents
-    _, s, vt = jnp.linalg.svd(A, full_matrices=False)
-    v, others = vt[-1], vt[:-1]
-    dG_v = dA.T @ (A @ v) + A.T @ (dA @ v)
-    dv = -others.T @ ((others @ dG_v) / (s[:-1] ** 2 - s[-1] ** 2))
-    return (v, s), (dv, jnp.zeros_like(s))
-
-
 def _smallest_right_singular(A):
     """The null vector of `A` and its singular values, padding rows so that SVD returns it."""
     rows, cols = A.shape
