@@ -439,9 +439,19 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
     except OSError as error:
         raise ValueError(f"{folder}: not a COLMAP text model ({error})") from None
     intrinsics = {}
+    n_params = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+    n_params["FULL_OPENCV"] = 12
     for line in cam_lines:
         f = line.split()
-        model, p = f[1], [float(v) for v in f[4:]]
+        try:
+            model, p = f[1], [float(v) for v in f[4:]]
+            n = n_params.get(model, len(p))
+            if len(f) < 4 or len(p) != n:
+                raise ValueError(f"{model} has {n} parameters, not {len(p)}")
+        except (IndexError, ValueError) as error:
+            raise ValueError(
+                f"{folder / 'cameras.txt'}: malformed line {line!r} ({error})"
+            ) from None
         dist = [0.0] * 5
         if model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
             fx, fy, cx, cy = p[:4]
@@ -464,7 +474,11 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
         if len(f) < 10 or f[8] not in intrinsics:
             raise ValueError(f"{folder}: malformed images.txt line: {line!r}")
         fx, fy, cx, cy, dist = intrinsics[f[8]]
-        q, t = [float(v) for v in f[1:5]], [float(v) for v in f[5:8]]
+        try:
+            q, t = [float(v) for v in f[1:5]], [float(v) for v in f[5:8]]
+        except ValueError as error:
+            where = folder / "images.txt"
+            raise ValueError(f"{where}: malformed line {line!r} ({error})") from None
         fields.append((fx, fy, cx, cy, _rotation(q), t, dist))
         names.append(f[9])
     if not fields:

@@ -402,12 +402,6 @@ def test_malformed_aniposelib_files_are_refused_with_the_file_name(tmp_path):
             mc.io.load_aniposelib(path)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="io.load_colmap: a short cameras.txt line raises IndexError (`mvcalib report FOLDER "
-    "...` shows a traceback) and a non-number a ValueError without the file's name; fix "
-    "proposed in /tmp/helpers/reliability.status.md",
-)
 @pytest.mark.parametrize("line", ["1", "1 PINHOLE 10 10 abc 1 2 3", "1 PINHOLE 10 10 5"])
 def test_malformed_colmap_cameras_are_refused_with_the_file_name(tmp_path, line):
     (tmp_path / "cameras.txt").write_text(line + "\n")
