@@ -13,6 +13,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import stat
 import tempfile
 
@@ -175,7 +176,7 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
         document = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
         raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
-    keys = sorted((k for k in document if k.startswith("cam_")), key=lambda k: int(k[4:]))
+    keys = sorted((k for k in document if re.fullmatch(r"cam_\d+", k)), key=lambda k: int(k[4:]))
     if not keys:
         raise ValueError(f"{path}: no [cam_N] tables.")
     try:
