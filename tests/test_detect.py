@@ -39,11 +39,11 @@ def _views(seeds, per_rig, **render_options):
 
 @pytest.fixture(scope="module")
 def views_many():
-    """80 random views, 1000 x 1100, blur 1 px, noise 3 grey levels, illumination gradient
+    """40 random views, 1000 x 1100, blur 1 px, noise 3 grey levels, illumination gradient
     (`benchmarks/label.py` and `benchmarks/detect.py` run the same sweep over 200 views)."""
     start = time.perf_counter()
     records = []
-    for camera, image in _views(range(4), 20, blur_sigma=1.0, noise_sigma=3.0, gradient=0.3):
+    for camera, image in _views(range(4), 10, blur_sigma=1.0, noise_sigma=3.0, gradient=0.3):
         found = detect_dots(image)
         records.append(
             dict(
