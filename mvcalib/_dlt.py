@@ -52,12 +52,15 @@ def _null_vector_jvp(primals, tangents):
 
 
 def _design_matrix(world, pixels, visible):
-    """The 2N x 12 matrix L of eq. 11 (two rows per point; rows of hidden points are zero)."""
+    """The 2N x 12 matrix L of eq. 11 (two rows per point; rows of hidden points are zero).
+
+    For 2-D points of a plane, `world (N, 2)`, the same rows make the 2N x 9 system of a
+    homography (`mvcalib.calibrate_planar`)."""
     Xh = jnp.concatenate([world, jnp.ones_like(world[:, :1])], axis=-1)
     zero = jnp.zeros_like(Xh)
     rows_u = jnp.concatenate([Xh, zero, -pixels[:, :1] * Xh], axis=-1)  # eq. 9
     rows_v = jnp.concatenate([zero, Xh, -pixels[:, 1:] * Xh], axis=-1)  # eq. 10
-    L = jnp.stack([rows_u, rows_v], axis=1).reshape(-1, 12)
+    L = jnp.stack([rows_u, rows_v], axis=1).reshape(-1, 3 * Xh.shape[-1])
     return jnp.where(jnp.repeat(visible, 2)[:, None], L, 0.0)
 
 

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _validate
 from ._camera import Camera
-from ._dlt import _null_vector, _similarity
+from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
 from ._refine import (
     _RESULT_MESSAGES,
@@ -157,13 +157,7 @@ def _homography_kernel(plane, pixels, mask, rcond):
     T2, s2, c2 = _similarity(pixels, w)
     a = plane @ T1[:2, :2].T + T1[:2, 2]
     b = pixels @ T2[:2, :2].T + T2[:2, 2]
-    ah = jnp.concatenate([a, jnp.ones_like(a[:, :1])], -1)
-    zero = jnp.zeros_like(ah)
-    rows_u = jnp.concatenate([ah, zero, -b[:, :1] * ah], -1)
-    rows_v = jnp.concatenate([zero, ah, -b[:, 1:] * ah], -1)
-    L = jnp.stack([rows_u, rows_v], 1).reshape(-1, 9)
-    L = jnp.where(jnp.repeat(visible, 2)[:, None], L, 0.0)
-    v, sv = _smallest_right_singular(L)
+    v, sv = _smallest_right_singular(_design_matrix(a, b, visible))
     T2_inv = jnp.array([[1 / s2, 0, c2[0]], [0, 1 / s2, c2[1]], [0, 0, 1]], dtype=dtype)
     H = T2_inv @ v.reshape(3, 3) @ T1
     H = H / jnp.linalg.norm(H)

@@ -19,8 +19,8 @@ def _auto_mesh(mesh: Mesh | None) -> Mesh:
     """`mesh`, or a 1-D mesh over all devices, with GSPMD's automatic ("Auto") axes.
 
     `jax.make_mesh` builds "Explicit" axes in recent JAX, where every operation must have a
-    sharding rule at trace time; mvcalib's kernels are written for propagation (a sharded value
-    stacked with a constant, for one), so the same devices and names are used with Auto axes.
+    sharding rule at trace time; mvcalib's kernels are written for GSPMD's propagation, and are
+    tested that way, so the same devices and names are used with Auto axes.
     """
     if mesh is None:
         return Mesh(np.array(jax.devices()), ("batch",))
