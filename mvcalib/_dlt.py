@@ -11,6 +11,12 @@ from jaxtyping import Array, Bool, Float
 from . import _validate
 from ._status import Status
 
+# The largest reprojection RMS of a camera, as a fraction of its pixels' spread, that is still
+# called a fit (else `Status.POOR_FIT`). The DLT of synthetic cameras with strong radial
+# distortion (k1 = -0.5, k2 = 0.3, the target filling the image) reaches 0.02; one pixel off by
+# half the spread among the 19 of the box-corner target gives more than 0.05 (docs/reliability.md).
+DEFAULT_MAX_RELATIVE_RMS = 0.05
+
 
 def _similarity(points, w):
     """Hartley's normalisation `T` (centroid to 0, RMS distance sqrt(d)) over the weighted points.
@@ -64,7 +70,30 @@ def _design_matrix(world, pixels, visible):
     return jnp.where(jnp.repeat(visible, 2)[:, None], L, 0.0)
 
 
-def _dlt_kernel(world, pixels, mask, rcond):
+def poor_fit(rms, pixels, visible, max_relative_rms):
+    """True where a camera's reprojection RMS over its visible points exceeds `max_relative_rms`
+    times the pixels' spread (the median distance of the visible pixels from their median).
+
+    A check of an answer, not part of it: no derivative flows through it. Both sides are
+    invariant to similarities of the world and pixel frames, like the DLT itself; the median
+    keeps one wild pixel from inflating the spread that it is measured against.
+    """
+    rms, pixels = jax.lax.stop_gradient((rms, pixels))
+    hidden = jnp.where(visible[..., None], pixels, jnp.nan)
+    middle = jnp.nanmedian(hidden, axis=-2, keepdims=True)
+    spread = jnp.nanmedian(jnp.linalg.norm(hidden - middle, axis=-1), axis=-1)
+    return ~(rms <= max_relative_rms * spread)
+
+
+def _rms(P, world, pixels, visible):
+    """The reprojection RMS of `P (3, 4)` over the visible points."""
+    h = world @ P[:, :3].T + P[:, 3]
+    depth = jnp.where(visible, h[:, 2], 1.0)
+    err2 = jnp.where(visible, jnp.sum((h[:, :2] / depth[:, None] - pixels) ** 2, axis=-1), 0.0)
+    return jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(visible), 1))
+
+
+def _dlt_kernel(world, pixels, mask, rcond, max_relative_rms):
     """One camera: (N, 3), (N, 2), (N,) -> P (3, 4), status, condition number, mirrored."""
     dtype = world.dtype
     finite = jnp.all(jnp.isfinite(world), -1) & jnp.all(jnp.isfinite(pixels), -1)
@@ -99,8 +128,15 @@ def _dlt_kernel(world, pixels, mask, rcond):
             n_visible < _validate.MIN_POINTS,
             ~(sv[-2] > rcond * sv[0]),
             jnp.any(visible & (depth <= 0)),
+            poor_fit(_rms(P, world, pixels, visible), pixels, visible, max_relative_rms),
         ],
-        [Status.NON_FINITE, Status.TOO_FEW_POINTS, Status.DEGENERATE, Status.POINTS_BEHIND],
+        [
+            Status.NON_FINITE,
+            Status.TOO_FEW_POINTS,
+            Status.DEGENERATE,
+            Status.POINTS_BEHIND,
+            Status.POOR_FIT,
+        ],
         Status.OK,
     ).astype(jnp.int32)
     P = jnp.where(status == Status.OK, P, jnp.nan)
@@ -110,11 +146,21 @@ def _dlt_kernel(world, pixels, mask, rcond):
     return P, status, condition, mirrored
 
 
-@functools.partial(jax.jit, static_argnames="rcond")
-def solve_validated(world, pixels, mask, rcond):
+@functools.partial(jax.jit, static_argnames=("rcond", "max_relative_rms"))
+def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_RELATIVE_RMS):
     """The DLT of every camera for inputs that passed `_validate.correspondences`."""
-    kernel = functools.partial(_dlt_kernel, rcond=rcond)
+    kernel = functools.partial(_dlt_kernel, rcond=rcond, max_relative_rms=max_relative_rms)
     return jnp.vectorize(kernel, signature="(n,3),(n,2),(n)->(3,4),(),(),()")(world, pixels, mask)
+
+
+def check_relative_rms(value) -> float:
+    """`max_relative_rms` as a float, or a ValueError saying what it must be."""
+    value = float(value)
+    if not value > 0:
+        raise ValueError(
+            f"`max_relative_rms` must be positive (or inf to turn the check off); got {value}."
+        )
+    return value
 
 
 def default_rcond(dtype) -> float:
@@ -122,17 +168,26 @@ def default_rcond(dtype) -> float:
     return float(jnp.finfo(dtype).eps) ** 0.5
 
 
-def solve(world, pixels, mask=None, *, rcond: float | None = None):
+def solve(
+    world,
+    pixels,
+    mask=None,
+    *,
+    rcond: float | None = None,
+    max_relative_rms: float = DEFAULT_MAX_RELATIVE_RMS,
+):
     """Validated DLT returning `(P, status, condition, mirrored)`; see `dlt`."""
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
     rcond = default_rcond(world.dtype) if rcond is None else float(rcond)
-    return solve_validated(world, pixels, mask, rcond)
+    return solve_validated(world, pixels, mask, rcond, check_relative_rms(max_relative_rms))
 
 
 def dlt(
     world: Float[Array, "*batch N 3"],
     pixels: Float[Array, "*batch N 2"],
     mask: Bool[Array, "*batch N"] | None = None,
+    *,
+    max_relative_rms: float = DEFAULT_MAX_RELATIVE_RMS,
 ) -> Float[Array, "*batch 3 4"]:
     """Projection matrices from 3-D/2-D correspondences by the normalised DLT (paper, eqs. 6–11).
 
@@ -149,10 +204,14 @@ def dlt(
     - `pixels`: observed pixels `(..., N, 2)` as `(x = column, y = row)`.
     - `mask`: visibility `(..., N)`, boolean. Hidden points have no influence at all: their values,
       even NaN, never reach the result or its gradient.
+    - `max_relative_rms`: the largest reprojection RMS of an answer, as a fraction of the spread
+      of its pixels (median distance from their median), that counts as a fit; default 0.05.
+      `inf` turns the check off.
 
     **Returns:** `P` of shape `(..., 3, 4)`. A camera whose P is not determined (fewer than 6
     visible points, coplanar or collinear points, NaN in traced input, points on both sides of the
-    camera) gets a P full of NaN instead of a plausible wrong answer; `mvcalib.calibrate` says why.
+    camera) or does not fit its points (`max_relative_rms`: a wild correspondence) gets a P full
+    of NaN instead of a plausible wrong answer; `mvcalib.calibrate` says why.
 
     **Example:**
 
@@ -165,4 +224,4 @@ def dlt(
 
     ```
     """
-    return solve(world, pixels, mask)[0]
+    return solve(world, pixels, mask, max_relative_rms=max_relative_rms)[0]

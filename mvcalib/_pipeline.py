@@ -78,6 +78,7 @@ def calibrate(
     *,
     skew: bool = True,
     rcond: float | None = None,
+    max_relative_rms: float = _dlt.DEFAULT_MAX_RELATIVE_RMS,
     strict: bool = False,
     refine: bool | dict = False,
 ) -> Calibration:
@@ -86,7 +87,8 @@ def calibrate(
     Runs the normalised DLT (`mvcalib.dlt`), the closed-form decomposition
     (`Camera.from_projection`) and the back-projection report for all cameras at once. A camera
     whose data cannot determine it (fewer than 6 visible points, coplanar or collinear points,
-    NaN in traced input, points on both sides of the camera) gets a status
+    NaN in traced input, points on both sides of the camera, a reprojection error out of all
+    proportion to the image of the target) gets a status
     that says so and NaN parameters; the others are exactly what they would be alone. Nothing
     raises inside `jax.jit`.
 
@@ -96,6 +98,12 @@ def calibrate(
     - `skew`: estimate the skew (default) or use the paper's skew-free eqs. 19–21.
     - `rcond`: relative threshold on the second-smallest singular value of the normalised DLT
       system below which a camera is `Status.DEGENERATE`; default sqrt(machine epsilon).
+    - `max_relative_rms`: a camera whose reprojection RMS exceeds this fraction of its
+      pixels' spread (median distance from their median) is `Status.POOR_FIT`, with NaN
+      parameters; default 0.05, more than twice what the DLT leaves of strong lens distortion.
+      One wild correspondence is the usual cause. With `refine`, the refined camera is checked
+      instead, over the points it kept (a robust loss's inliers), so that distortion the DLT
+      cannot model is refined, not rejected. `inf` turns the check off.
     - `strict`: raise `CalibrationError` if any camera failed (outside `jit` only).
     - `refine`: seed `mvcalib.refine` with the closed-form cameras and return its cameras and
       report: `True` for its defaults (zero skew, distortion k1, k2, p1, p2, least squares), or a
@@ -115,7 +123,15 @@ def calibrate(
     """
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
-    result = _calibrate(world, pixels, mask, skew=skew, rcond=rcond)
+    max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
+    result = _calibrate(
+        world,
+        pixels,
+        mask,
+        skew=skew,
+        rcond=rcond,
+        max_relative_rms=jnp.inf if refine is not False else max_relative_rms,
+    )
     if strict and _validate.is_concrete(result.status):
         result.raise_if_failed()
     if refine is not False:
@@ -129,23 +145,37 @@ def calibrate(
             lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, 1.0), seed
         )
         refined = _refine.refine(safe, world, pixels, mask & ok[..., None], **options)
+        # The check of the refined camera counts the points the fit kept (a robust loss's
+        # inliers; all visible points for least squares).
+        kept = refined.inliers
+        err2 = jnp.sum(jnp.where(kept[..., None], refined.report.residuals, 0.0) ** 2, (-1, -2))
+        rms_kept = jnp.sqrt(err2 / jnp.maximum(jnp.sum(kept, -1), 1))
+        poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms)
+        status = jnp.where(ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
+        ok = status == Status.OK
         cameras = jax.tree_util.tree_map(
             lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, jnp.nan),
             refined.cameras,
         )
         result = eqx.tree_at(
-            lambda r: (r.cameras, r.report, r.refinement),
+            lambda r: (r.cameras, r.report, r.refinement, r.status),
             result,
-            (cameras, refined.report, refined),
+            (cameras, refined.report, refined, status),
             is_leaf=lambda x: x is None,
         )
+        if strict and _validate.is_concrete(status):
+            result.raise_if_failed()
     return result
 
 
-@functools.partial(jax.jit, static_argnames=("skew", "rcond"))
-def _calibrate(world, pixels, mask, skew: bool, rcond: float) -> Calibration:
+@functools.partial(jax.jit, static_argnames=("skew", "rcond", "max_relative_rms"))
+def _calibrate(
+    world, pixels, mask, skew: bool, rcond: float, max_relative_rms: float
+) -> Calibration:
     """DLT, decomposition and report for validated inputs, compiled into one computation."""
-    P, status, condition, mirrored = _dlt.solve_validated(world, pixels, mask, rcond)
+    P, status, condition, mirrored = _dlt.solve_validated(
+        world, pixels, mask, rcond, max_relative_rms
+    )
     cameras = Camera.from_projection(P, skew=skew)
     report = compute_report(cameras, world, pixels, mask)
     return Calibration(

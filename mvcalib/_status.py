@@ -17,6 +17,7 @@ class Status(enum.IntEnum):
     NON_FINITE = 3
     POINTS_BEHIND = 4
     NOT_LABELLED = 5
+    POOR_FIT = 6
 
     @property
     def message(self) -> str:
@@ -33,6 +34,11 @@ _MESSAGES = {
     Status.NON_FINITE: "NaN or inf among the visible points",
     Status.POINTS_BEHIND: (
         "the visible points lie on both sides of the camera: some correspondences are wrong"
+    ),
+    Status.POOR_FIT: (
+        "the camera reprojects its own points with an RMS above `max_relative_rms` (default 5 %) "
+        "of their spread: wrong correspondences (one wild pixel is enough), or noise or lens "
+        "distortion too large for a pinhole camera at this image size"
     ),
     Status.NOT_LABELLED: (
         "the image could not be read, or its dots could not be told apart with certainty "
