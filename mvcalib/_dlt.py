@@ -47,13 +47,22 @@ def _null_vector(A):
 @_null_vector.defjvp
 def _null_vector_jvp(primals, tangents):
     # JAX's SVD derivative also differentiates U, dividing by the smallest singular value, which is
-    # zero for noise-free data. First-order perturbation of the smallest eigenvector of G = A^T A
-    # needs only the gap to the next one, which is what makes the DLT solution unique anyway.
+    # zero for noise-free data. First-order perturbation of the smallest eigenvector v of
+    # G = A^T A needs only the gap to the next eigenvalue, which is what makes the DLT solution
+    # unique anyway: (G - l I) dv = -(I - v v^T) dG v with v^T dv = 0. Adding c v v^T makes the
+    # matrix invertible without changing that solution (B v = c v, and the right-hand side is
+    # orthogonal to v). Written with v from this function itself and a linear solve, not the
+    # other singular vectors, it is differentiable again: second derivatives stay finite where
+    # other singular values repeat (a symmetric target), where JAX's SVD rule gives NaN.
     (A,), (dA,) = primals, tangents
-    _, s, vt = jnp.linalg.svd(A, full_matrices=False)
-    v, others = vt[-1], vt[:-1]
+    v, s = _null_vector(A)
+    G = A.T @ A
+    lam = v @ G @ v
+    c = jnp.trace(G) / G.shape[-1] + 1.0  # any c > 0; this one is of G's scale
+    B = G - lam * jnp.eye(G.shape[-1], dtype=G.dtype) + c * jnp.outer(v, v)
     dG_v = dA.T @ (A @ v) + A.T @ (dA @ v)
-    dv = -others.T @ ((others @ dG_v) / (s[:-1] ** 2 - s[-1] ** 2))
+    rhs = dG_v - v * (v @ dG_v)
+    dv = -jnp.linalg.solve(B, rhs)
     return (v, s), (dv, jnp.zeros_like(s))
 
 

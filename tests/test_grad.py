@@ -187,6 +187,31 @@ def test_dlt_and_decomposition_are_differentiable_and_ignore_hidden_points(scene
     assert np.all(np.abs(np.asarray(g_pixels)[:, :, mask[0]]).sum(-1) > 0)
 
 
+def test_dlt_second_derivatives_are_finite_for_a_symmetric_target():
+    # The eight corners of a cube seen head-on: the normalised DLT system has repeated singular
+    # values besides the zero one, where JAX's SVD derivative (and so the second derivative of
+    # a rule built on it) divides by zero. Hessian-vector products must equal central
+    # differences of the gradient. (Found by notebook 04, which needs jacfwd inside grad.)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    world = 100.0 * corners
+    h = (world + [0.0, 0.0, 800.0]) @ np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]]).T
+    pixels = jnp.asarray(h[:, :2] / h[:, 2:])
+
+    def f(p):
+        return jnp.sum(mc.dlt(world, p) ** 3)
+
+    H = jax.hessian(f)(pixels)
+    assert np.isfinite(np.asarray(H)).all()
+    direction = np.random.default_rng(0).standard_normal(pixels.shape)
+    step = 1e-5
+    fd = (jax.grad(f)(pixels + step * direction) - jax.grad(f)(pixels - step * direction)) / (
+        2 * step
+    )
+    np.testing.assert_allclose(
+        jnp.tensordot(H, direction, axes=2), fd, rtol=0, atol=1e-7 * float(jnp.abs(fd).max())
+    )
+
+
 # ---------------------------------------------------------------------------- registration
 def test_procrustes_is_differentiable_also_at_a_symmetric_configuration():
     # Batch 0: the corners of a cube, moved exactly: the cross-covariance is a multiple of a
