@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
@@ -237,9 +238,20 @@ def _free_parameters(distortion, fix, skew) -> tuple[int, ...]:
 
 
 def default_solver(dtype) -> optx.LevenbergMarquardt:
-    """LM with tolerances near the precision of `dtype` (1e-10 in float64, 1e-5 in float32)."""
-    tol = 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-5
-    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    """Levenberg–Marquardt stopping at steps of 1e-6 (float64) or 1e-5 (float32) in the
+    parameters' natural units (`_scales`), with its steps solved by normal equations in float64.
+
+    The tolerance is far below the noise: on 64 cameras of the refine benchmark (14 parameters)
+    every parameter ends within 4e-6 of its standard error from the optimum of a 1e-12 solve,
+    and the RMS within 2e-13 relative; a tolerance of 1e-10 costs 2.5 times the steps, because
+    the slowest direction (k1, k2 against the focal length, condition ~1e10 of J^T J) converges
+    only linearly. Normal equations (one 14 x 14 Cholesky) cost a third of the default QR of the
+    augmented Jacobian; in float32 that squared condition number is beyond the precision, so
+    QR stays.
+    """
+    if jnp.dtype(dtype) == jnp.float64:
+        return optx.LevenbergMarquardt(1e-6, 1e-6, linear_solver=lx.Normal(lx.Cholesky()))
+    return optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)
 
 
 def refine(
@@ -275,7 +287,9 @@ def refine(
       zero-skew model that OpenCV uses; `calibrate(refine=True)` seeds it with zero).
     - `loss`: `None` for least squares, or `Huber(scale)` / `Cauchy(scale)` with `scale` in
       pixels, to bound the influence of outliers.
-    - `solver`: any optimistix least-squares solver; default LM with tolerance 1e-10 (float64).
+    - `solver`: any optimistix least-squares solver; default `default_solver(dtype)`: LM with
+      tolerance 1e-6 (float64) in natural units, parameters within ~1e-5 standard errors of
+      the optimum.
     - `max_steps`: iteration limit per camera; reaching it is reported, not raised.
 
     **Returns:** a `Refinement`.
