@@ -186,3 +186,29 @@ def test_bad_input_raises_value_error(call, message):
     pixels = np.asarray(cameras.project(world))
     with pytest.raises(ValueError, match=message):
         call(cameras, pixels)
+
+
+def test_points_match_a_per_point_numpy_svd_reference():
+    # The same normalised, focal-weighted linear system as mvcalib, solved per point by
+    # numpy's SVD of the 2C x 4 rows: the two must agree to rounding, noise or not.
+    cameras, world = ring(8, seed=12)
+    pixels = np.asarray(cameras.project(world))
+    pixels = pixels + 0.5 * np.random.default_rng(12).standard_normal(pixels.shape)
+    out = mc.triangulate(cameras, pixels)
+    K_inv = np.linalg.inv(np.asarray(cameras.K))
+    R, t = np.asarray(cameras.R), np.asarray(cameras.t)
+    centres = -np.einsum("cji,cj->ci", R, t)
+    middle = centres.mean(0)
+    spread = np.sqrt(np.mean(np.sum((centres - middle) ** 2, -1)))
+    focal = np.sqrt(np.asarray(cameras.alpha_u * cameras.alpha_v))
+    weight = focal / focal.mean()
+    P = weight[:, None, None] * np.concatenate([R, ((R @ middle + t) / spread)[..., None]], axis=-1)
+    reference = []
+    for n in range(len(world)):
+        xn = np.einsum("cij,cj->ci", K_inv, np.concatenate([pixels[:, n], np.ones((8, 1))], -1))
+        rows = np.concatenate([xn[:, :1] * P[:, 2] - P[:, 0], xn[:, 1:2] * P[:, 2] - P[:, 1]])
+        v = np.linalg.svd(rows)[2][-1]
+        reference.append(middle + spread * v[:3] / v[3])
+    reference = np.array(reference)
+    np.testing.assert_allclose(out.points, reference, rtol=1e-9, atol=1e-9 * 200)
+    assert float(np.sqrt(np.mean(np.sum((reference - np.asarray(world)) ** 2, -1)))) > 1e-3
