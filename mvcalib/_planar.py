@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
@@ -300,7 +301,12 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     args = (p0, camera.R, camera.t, scale, distance, free_shared, free_pose,
             world, pixels, mask, loss)  # fmt: skip
     y0 = {"shared": jnp.zeros_like(p0), "views": jnp.zeros((len(distance), 6), p0.dtype)}
-    sol = optx.least_squares(_planar_residuals, solver, y0, args, max_steps=max_steps, throw=False)
+    # The fixed parameters are zero columns of the Jacobian, so the implicit derivative's linear
+    # system is singular along them: a least-squares (SVD) solve gives them zero derivative.
+    adjoint = optx.ImplicitAdjoint(linear_solver=lx.SVD())
+    sol = optx.least_squares(
+        _planar_residuals, solver, y0, args, max_steps=max_steps, adjoint=adjoint, throw=False
+    )
     return _planar_unknowns(sol.value, args), sol.stats["num_steps"], sol.result._value  # noqa: SLF001
 
 
