@@ -173,9 +173,10 @@ class Camera(eqx.Module):
         - `skew=False`: the paper's eqs. 19–21 as printed, `alpha_u = sqrt(m1·m1 - u0^2)`,
           `r1 = (m1 - u0 m3) / alpha_u`, with the skew forced to zero.
 
-        Either way `R` is then re-orthogonalised to `U V^T` (its nearest rotation), with a
-        derivative that exists at orthogonal `R` (see `nearest_rotation`). Batched over leading
-        axes of `P`; differentiable.
+        With the skew, `R` is orthonormal by construction (one Gram–Schmidt pass); the paper's
+        `R` is re-orthogonalised to `U V^T` (its nearest rotation), with a derivative that exists
+        at orthogonal `R` (see `nearest_rotation`). Batched over leading axes of `P`;
+        differentiable.
 
         **Example:**
 
@@ -221,7 +222,9 @@ def _decompose_skew(P):
     tz = m34  # eq. 16
     ty = (m24 - v0 * tz) / alpha_v  # eq. 23
     tx = (m14 - u0 * tz - s * ty) / alpha_u  # eq. 22 with the skew term
-    R = nearest_rotation(jnp.stack([r1, r2, m3]))
+    # Gram–Schmidt of (m3, m2, m1): r1, r2, r3 are orthonormal by construction (to rounding),
+    # and right-handed since det(M) = alpha_u alpha_v det(R) > 0; nothing to re-orthogonalise.
+    R = jnp.stack([r1, r2, m3])
     return alpha_u, alpha_v, u0, v0, s, R, jnp.stack([tx, ty, tz])
 
 
