@@ -112,7 +112,18 @@ def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS):
     return world, pixels, mask
 
 
+@jax.jit
+def _count_non_finite(world, pixels, mask):
+    """How many visible points have NaN/inf in `world` and in `pixels`: two integers."""
+    count = lambda x: jnp.sum(~jnp.all(jnp.isfinite(x), axis=-1) & mask)  # noqa: E731
+    return count(world), count(pixels)
+
+
 def _check_finite(world, pixels, mask):
+    # Counted where the data live (two integers come back to the host, not the arrays); the
+    # arrays are copied to NumPy only to name the first bad entry in the error.
+    if not any(int(n) for n in _count_non_finite(world, pixels, mask)):
+        return
     mask = np.asarray(mask)
     for name, x in (("world", world), ("pixels", pixels)):
         x = np.asarray(x)
