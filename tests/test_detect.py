@@ -54,7 +54,8 @@ def views_many():
                 apart=visible_dots(camera, TARGET, min_gap=MIN_GAP_PX),
             )
         )
-    print(f"\n{len(records)} views rendered, detected and labelled in {time.perf_counter() - start:.1f} s")
+    took = time.perf_counter() - start
+    print(f"\n{len(records)} views rendered, detected and labelled in {took:.1f} s")
     return records
 
 
