@@ -12,7 +12,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _dlt, _refine, _validate
 from ._camera import Camera
-from ._report import ReprojectionReport, compute_report, format_table
+from ._report import ReprojectionReport, compute_report, format_table, masked_rms
 from ._status import Status
 
 
@@ -147,9 +147,7 @@ def calibrate(
         refined = _refine.refine(safe, world, pixels, mask & ok[..., None], **options)
         # The check of the refined camera counts the points the fit kept (a robust loss's
         # inliers; all visible points for least squares).
-        kept = refined.inliers
-        err2 = jnp.sum(jnp.where(kept[..., None], refined.report.residuals, 0.0) ** 2, (-1, -2))
-        rms_kept = jnp.sqrt(err2 / jnp.maximum(jnp.sum(kept, -1), 1))
+        rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)
         poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms)
         status = jnp.where(ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
         ok = status == Status.OK

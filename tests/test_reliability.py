@@ -127,10 +127,9 @@ def broken_rig(rig):
     return world, pixels, mask, expected
 
 
-def spread(pixels, mask=None):
-    """The median distance of the visible pixels from their (coordinate-wise) median."""
-    p = pixels if mask is None else pixels[mask]
-    return np.median(np.linalg.norm(p - np.median(p, axis=0), axis=-1))
+def spread(pixels):
+    """The median distance of a camera's pixels from their (coordinate-wise) median."""
+    return np.median(np.linalg.norm(pixels - np.median(pixels, axis=0), axis=-1))
 
 
 CALIBRATE = jax.jit(mc.calibrate, static_argnames="max_relative_rms")  # nothing raises in jit
