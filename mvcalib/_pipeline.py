@@ -27,8 +27,9 @@ class Calibration(eqx.Module):
     - `P`: the projection matrices with `||m3|| = 1`, `(..., 3, 4)`.
     - `report`: Table I and RMS/max per camera, on the points used for calibration.
     - `status`: a `Status` code per camera (`int32`); `ok` is `status == Status.OK`.
-    - `condition`: the DLT's condition number `s_1 / s_11` after normalisation (large means
-      nearly degenerate geometry).
+    - `condition`: the DLT's condition number `||L||_F / s_11` after normalisation (Frobenius
+      norm over the second smallest singular value, estimated; large means nearly degenerate
+      geometry).
     - `mirrored`: True where the world frame is mirrored relative to the camera (det M < 0 with
       the points in front): left-handed world coordinates, as in the Oxford VGG data, or pixels
       with y pointing up. `P` is right either way; `cameras` then has a proper rotation and
@@ -97,7 +98,8 @@ def calibrate(
     - `world`, `pixels`, `mask`: as for `mvcalib.dlt`.
     - `skew`: estimate the skew (default) or use the paper's skew-free eqs. 19–21.
     - `rcond`: relative threshold on the second-smallest singular value of the normalised DLT
-      system below which a camera is `Status.DEGENERATE`; default sqrt(machine epsilon).
+      system (against its Frobenius norm) below which a camera is `Status.DEGENERATE`; default
+      sqrt(machine epsilon).
     - `max_relative_rms`: a camera whose reprojection RMS exceeds this fraction of its
       pixels' spread (median distance from their median) is `Status.POOR_FIT`, with NaN
       parameters; default 0.05, more than twice what the DLT leaves of strong lens distortion.

@@ -1,0 +1,87 @@
+"""Small symmetric linear algebra written out entry by entry.
+
+A matrix here is a list of rows of scalars (or, under `vmap`, of arrays over the batch). Batched
+over thousands of cameras or points, LAPACK runs one tiny problem after another, and XLA's
+reductions over axes of length 4 are slow on CPU; written out, every entry is one array over the
+batch and XLA fuses the whole solve into a few elementwise loops.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def cholesky(A, floor):
+    """The lower Cholesky factor of the symmetric `A` (only its lower triangle is read).
+
+    Pivots below `floor` are raised to it, so a singular or slightly indefinite `A` (rounding of a
+    semi-definite one) gets a factor of a nearby definite matrix, as inverse iteration wants.
+    """
+    n = len(A)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = A[j][j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = jnp.sqrt(jnp.maximum(d, floor))
+        for i in range(j + 1, n):
+            L[i][j] = (A[i][j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    return L
+
+
+def cho_solve(L, b):
+    """`x` with `L L^T x = b`."""
+    n = len(L)
+    y = [None] * n
+    for i in range(n):
+        y[i] = (b[i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, n))) / L[i][i]
+    return x
+
+
+def matvec(A, x):
+    return [sum(a * b for a, b in zip(row, x)) for row in A]
+
+
+def dot(x, y):
+    return sum(a * b for a, b in zip(x, y))
+
+
+def axpy(a, x, y):
+    """`a x + y` for lists `x`, `y` and a scalar `a`."""
+    return [a * xi + yi for xi, yi in zip(x, y)]
+
+
+def normalised(x):
+    norm = jnp.sqrt(dot(x, x))
+    return [xi / norm for xi in x]
+
+
+def inverse_iteration(solve, start, steps):
+    """The eigenvector (unit, as a list) of the smallest eigenvalue of the positive
+    semi-definite matrix that `solve` inverts: `steps` steps of inverse iteration from `start`.
+
+    Each step multiplies the error by the ratio of the two smallest eigenvalues. A fixed count
+    rather than a convergence test: under `vmap` every problem would run as many steps as the
+    slowest anyway, and split across devices the test would make them agree on every step.
+    """
+    return jax.lax.fori_loop(0, steps, lambda _, v: normalised(solve(v)), start)
+
+
+def eigenvector_tangent(G, v, dG_v):
+    """The derivative `dv` of the unit eigenvector `v` of the smallest eigenvalue of the symmetric
+    `G (n, n)`, given `dG v`.
+
+    First-order perturbation needs only the gap to the next eigenvalue (which is what makes `v`
+    unique anyway): `(G - l I) dv = -(I - v v^T) dG v` with `v^T dv = 0`. Adding `c v v^T` makes
+    the matrix invertible without changing that solution (`B v = c v`, and the right-hand side
+    is orthogonal to v). Written with v and a linear solve, not G's other eigenvectors, it is
+    differentiable again: second derivatives stay finite where other eigenvalues repeat (a
+    symmetric target), where JAX's SVD and eigh rules give NaN.
+    """
+    n = G.shape[-1]
+    lam = v @ G @ v
+    c = jnp.trace(G) / n + 1.0  # any c > 0; this one is of G's scale
+    B = G - lam * jnp.eye(n, dtype=G.dtype) + c * jnp.outer(v, v)
+    return -jnp.linalg.solve(B, dG_v - v * (v @ dG_v))
