@@ -108,8 +108,10 @@ def _normal_matrix(S):
 
 @jax.custom_jvp
 def _eigen(S):
-    """The unit eigenvector of `G = L^T L` for its smallest eigenvalue, and an estimate of `s_11`,
-    L's second smallest singular value (the square root of G's second smallest eigenvalue).
+    """The unit eigenvector `(12, *batch)` of `G = L^T L` for its smallest eigenvalue, and an
+    estimate of `s_11`, L's second smallest singular value (the square root of G's second smallest
+    eigenvalue), from the moments `S (4, 10, *batch)`: the cameras are the last axes, so that
+    every entry below is one contiguous array over them.
 
     Inverse iteration, each step one solve with G through its block structure: with `K_u = S0^-1
     Su`, `K_v = S0^-1 Sv` and the Schur complement `R = Sq - Su K_u - Sv K_v`, two 4 x 4 Cholesky
@@ -120,60 +122,59 @@ def _eigen(S):
     (<= 3e-5 with 0.5 pixel of noise on the benchmark's rig, 0.03 at 10 pixels, where the 8
     steps leave 1e-13).
 
-    `s_11` comes from the same steps kept orthogonal to the answer: an estimate from above, exact
-    where it matters (for nearly degenerate points the next eigenvalue is far above it, and the
-    steps converge at once), within 20 % (median 2 %) for well-conditioned ones with the 19 points
-    of the box corner, 35 % with six of them.
+    `s_11` comes from a second vector iterated beside the first and kept orthogonal to it, in the
+    same solves: an estimate from above, exact where it matters (for nearly degenerate points the
+    next eigenvalue is far below the others and the steps converge at once), within 3 % (median
+    0.1 %) for the box corner's 19 points, within 5 % for six of them (tested).
     """
-    S0, Su, Sv, Sq = _blocks(S)
-    dtype = S.dtype
-    scale = (2 * sum(S0[i][i] for i in range(4)) + sum(Sq[i][i] for i in range(4))) / 12
-    floor = jnp.finfo(dtype).eps * scale
+    S0, Su, Sv, Sq = (jnp.stack([jnp.stack(row) for row in b]) for b in _blocks(S))
+    floor = jnp.finfo(S.dtype).eps * sum(2 * S0[i, i] + Sq[i, i] for i in range(4)) / 12
+    # A 4 x 4 block is a list of rows, each a vector of several right-hand sides at once: fewer,
+    # wider operations than entry by entry, and a graph that XLA compiles quickly.
     L0 = _small.cholesky(S0, floor)
-    columns_u = [_small.cho_solve(L0, [Su[i][j] for i in range(4)]) for j in range(4)]
-    columns_v = [_small.cho_solve(L0, [Sv[i][j] for i in range(4)]) for j in range(4)]
-    Ku = [[columns_u[j][i] for j in range(4)] for i in range(4)]
-    Kv = [[columns_v[j][i] for j in range(4)] for i in range(4)]
-    R = [
-        [
-            Sq[i][j] - _small.dot(Su[i], columns_u[j]) - _small.dot(Sv[i], columns_v[j])
-            for j in range(4)
-        ]
-        for i in range(4)
-    ]
+    K = jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([Su, Sv], 1))))
+    Ku, Kv = K[:, :4], K[:, 4:]
+    R = Sq - _times(Su, Ku) - _times(Sv, Kv)
     LR = _small.cholesky(R, floor)
 
-    def solve(x):
-        b1, b2, b3 = x[:4], x[4:8], x[8:]
-        y1, y2 = _small.cho_solve(L0, b1), _small.cho_solve(L0, b2)
-        rhs = [b3[i] + _small.dot(Su[i], y1) + _small.dot(Sv[i], y2) for i in range(4)]
-        x3 = _small.cho_solve(LR, rhs)
-        x1 = [y1[i] + _small.dot(Ku[i], x3) for i in range(4)]
-        x2 = [y2[i] + _small.dot(Kv[i], x3) for i in range(4)]
-        return x1 + x2 + x3
+    def solve(X):
+        """`G^-1 X` for `X (12, m, *batch)`."""
+        m = X.shape[1]
+        Y = jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([X[:4], X[4:8]], 1))))
+        y1, y2 = Y[:, :m], Y[:, m:]
+        x3 = jnp.stack(_small.cho_solve(LR, list(X[8:] + _times(Su, y1) + _times(Sv, y2))))
+        return jnp.concatenate([y1 + _times(Ku, x3), y2 + _times(Kv, x3), x3])
 
-    def times_G(x):
-        x1, x2, x3 = x[:4], x[4:8], x[8:]
-        S0x1, S0x2 = _small.matvec(S0, x1), _small.matvec(S0, x2)
-        Sux3, Svx3 = _small.matvec(Su, x3), _small.matvec(Sv, x3)
-        Sqx3 = _small.matvec(Sq, x3)
-        Sux1, Svx2 = _small.matvec(Su, x1), _small.matvec(Sv, x2)
-        return (
-            [a - b for a, b in zip(S0x1, Sux3)]
-            + [a - b for a, b in zip(S0x2, Svx3)]
-            + [c - a - b for a, b, c in zip(Sux1, Svx2, Sqx3)]
-        )
+    def step(_, X):
+        # v, and beside it z kept orthogonal to v (for the second smallest eigenvalue)
+        # ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's
+        # size, which the second removes)
+        X = solve(X)
+        v = _small.normalised(X[:, 0])
+        z = X[:, 1]
+        for _ in range(2):
+            z = _small.normalised(z - v * jnp.sum(v * z, axis=0))
+        return jnp.stack([v, z], 1)
 
-    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    v = _small.inverse_iteration(solve, [zero] * 11 + [one], _INVERSE_STEPS)
+    start = jnp.asarray([[float(i == 11), x] for i, x in enumerate(_START)], S.dtype)  # (12, 2)
+    start = jnp.broadcast_to(start.reshape((12, 2) + (1,) * (S.ndim - 2)), (12, 2) + S.shape[2:])
+    X = jax.lax.fori_loop(0, _STEPS, step, start)
+    v, z = X[:, 0], X[:, 1]
+    G_z = jnp.concatenate(
+        [
+            _times(S0, z[:4]) - _times(Su, z[8:]),
+            _times(S0, z[4:8]) - _times(Sv, z[8:]),
+            _times(Sq, z[8:]) - _times(Su, z[:4]) - _times(Sv, z[4:8]),
+        ]
+    )
+    return v, jnp.sqrt(jnp.maximum(jnp.sum(z * G_z, axis=0), 0.0))
 
-    # The next eigenvalue: the same steps, kept orthogonal to v, from a vector that is not.
-    def orthogonal(z):
-        return _small.normalised(_small.axpy(-_small.dot(v, z), v, z))
 
-    z = [one * c for c in _START]
-    z = orthogonal(jax.lax.fori_loop(0, _SECOND_STEPS, lambda _, z: solve(orthogonal(z)), z))
-    return jnp.stack(v), jnp.sqrt(jnp.maximum(_small.dot(z, times_G(z)), 0.0))
+def _times(A, x):
+    """`A x` for a 4 x 4 block `A (4, 4, *batch)` and `x (4, *batch)` or `x (4, m, *batch)`."""
+    if x.ndim == A.ndim - 1:
+        return sum(A[:, k] * x[k] for k in range(4))
+    return sum(A[:, k, None] * x[k] for k in range(4))
 
 
 def _frobenius(S):
@@ -181,8 +182,7 @@ def _frobenius(S):
     return jnp.sqrt(sum(2 * S[0, _ENTRY[i, i]] + S[3, _ENTRY[i, i]] for i in range(4)))
 
 
-_INVERSE_STEPS = 8
-_SECOND_STEPS = 3  # inverse iteration steps for the second smallest eigenvalue
+_STEPS = 8
 # A start for the other eigenvector with no structure that the normal matrix could share.
 _START = (0.93, -0.27, 0.51, 0.12, -0.66, 0.38, 0.84, -0.45, 0.19, 0.71, -0.58, 0.33)
 
@@ -192,8 +192,15 @@ def _eigen_jvp(primals, tangents):
     # The singular value is a diagnostic and carries no derivative.
     (S,), (dS,) = primals, tangents
     v, s = _eigen(S)
-    dv = _small.eigenvector_tangent(_normal_matrix(S), v, _normal_matrix(dS) @ v)
-    return (v, s), (dv, jnp.zeros_like(s))
+
+    def tangent(S, dS, v):
+        return _small.eigenvector_tangent(_normal_matrix(S), v, _normal_matrix(dS) @ v)
+
+    first = functools.partial(jnp.moveaxis, source=(0, 1), destination=(-2, -1))
+    dv = jnp.vectorize(tangent, signature="(4,10),(4,10),(12)->(12)")(
+        first(S), first(dS), jnp.moveaxis(v, 0, -1)
+    )
+    return (v, s), (jnp.moveaxis(dv, -1, 0), jnp.zeros_like(s))
 
 
 def poor_fit(rms, pixels, visible, max_relative_rms):
@@ -257,23 +264,31 @@ def _rms(P, world, pixels, visible):
     return jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(visible), 1))
 
 
-def _dlt_kernel(world, pixels, mask, rcond, max_relative_rms):
-    """One camera: (N, 3), (N, 2), (N,) -> P (3, 4), status, condition number, mirrored."""
-    dtype = world.dtype
+def _visible(world, pixels, mask):
+    """One camera's visible points, with hidden ones replaced by 0 before any arithmetic, so that
+    neither their values nor NaN/inf in them can reach the result or its derivative; and whether
+    every point in the mask is finite."""
     finite = jnp.all(jnp.isfinite(world), -1) & jnp.all(jnp.isfinite(pixels), -1)
-    all_finite = jnp.all(finite | ~mask)
     visible = mask & finite
-    # Hidden points are replaced before any arithmetic, so neither their values nor NaN/inf in
-    # them can reach the result or its derivative.
     world = jnp.where(visible[:, None], world, 0.0)
     pixels = jnp.where(visible[:, None], pixels, 0.0)
-    w = visible.astype(dtype)
+    return world, pixels, visible, jnp.all(finite | ~mask)
 
+
+def _normalised_moments(world, pixels, mask):
+    """One camera: the moments of its normalised points `(4, 10)`, `||L||_F` and the
+    normalisations (scale and centroid of the world points and of the pixels)."""
+    world, pixels, visible, _ = _visible(world, pixels, mask)
+    w = visible.astype(world.dtype)
     _, s3, c3 = _similarity(world, w)
     _, s2, c2 = _similarity(pixels, w)
     S = _moments(s3 * (world - c3), s2 * (pixels - c2), w)
-    v, s_11 = _eigen(S)
-    norm = _frobenius(S)
+    return S, _frobenius(S), s3, c3, s2, c2
+
+
+def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms):
+    """One camera from its eigenvector `v (12,)`: P (3, 4), status, condition number, mirrored."""
+    world, pixels, visible, all_finite = _visible(world, pixels, mask)
     # De-normalised, P = T2^-1 V T3 with T = [[s I, -s c], [0, 1]], written out.
     V = v.reshape(3, 4)
     V = jnp.concatenate([s3 * V[:, :3], V[:, 3:] - s3 * _dot3(V[:, :3].T, c3)[:, None]], axis=1)
@@ -315,9 +330,18 @@ def _dlt_kernel(world, pixels, mask, rcond, max_relative_rms):
 
 @functools.partial(jax.jit, static_argnames=("rcond", "max_relative_rms"))
 def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_RELATIVE_RMS):
-    """The DLT of every camera for inputs that passed `_validate.correspondences`."""
-    kernel = functools.partial(_dlt_kernel, rcond=rcond, max_relative_rms=max_relative_rms)
-    return jnp.vectorize(kernel, signature="(n,3),(n,2),(n)->(3,4),(),(),()")(world, pixels, mask)
+    """The DLT of every camera for inputs that passed `_validate.correspondences`: per camera the
+    moments, then the eigenvectors of all cameras at once with the cameras as the last axis, then
+    per camera the de-normalised P and its checks."""
+    inputs = (world, pixels, mask)
+    S, *normalisation = jnp.vectorize(
+        _normalised_moments, signature="(n,3),(n,2),(n)->(4,10),(),(),(3),(),(2)"
+    )(*inputs)
+    v, s_11 = _eigen(jnp.moveaxis(S, (-2, -1), (0, 1)))
+    camera = functools.partial(_camera, rcond=rcond, max_relative_rms=max_relative_rms)
+    return jnp.vectorize(
+        camera, signature="(n,3),(n,2),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"
+    )(*inputs, jnp.moveaxis(v, 0, -1), s_11, *normalisation)
 
 
 def check_relative_rms(value) -> float:
