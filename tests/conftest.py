@@ -7,6 +7,16 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
+# One persistent compilation cache for the whole run, shared by the xdist workers and the
+# processes they start (notebook kernels), so that a program is compiled once, not once per
+# worker: the batched DLT and triangulation are written out entry by entry and take seconds to
+# compile. Only compilations over half a second are stored; a hit runs the same compiled code.
+CACHE = pathlib.Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
+jax.config.update("jax_compilation_cache_dir", str(CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(CACHE))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+
 DATA = pathlib.Path(
     os.environ.get(
         "MVCALIB_DATA", pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
