@@ -1,14 +1,13 @@
 """Small symmetric linear algebra written out entry by entry.
 
-A matrix here is a list of rows of scalars (or, under `vmap`, of arrays over the batch). Batched
-over thousands of cameras or points, LAPACK runs one tiny problem after another, and XLA's
+A matrix here is a list of rows, each an array whose trailing axes are the batch (the DLT's
+cameras). Batched over thousands of cameras, LAPACK runs one tiny problem after another, and XLA's
 reductions over axes of length 4 are slow on CPU; written out, every entry is one array over the
 batch and XLA fuses the whole solve into a few elementwise loops.
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 
@@ -49,17 +48,6 @@ def normalised(x):
     return x / jnp.sqrt(jnp.sum(x * x, axis=0))
 
 
-def inverse_iteration(solve, start, steps):
-    """The eigenvector (unit, as a list) of the smallest eigenvalue of the positive
-    semi-definite matrix that `solve` inverts: `steps` steps of inverse iteration from `start`.
-
-    Each step multiplies the error by the ratio of the two smallest eigenvalues. A fixed count
-    rather than a convergence test: under `vmap` every problem would run as many steps as the
-    slowest anyway, and split across devices the test would make them agree on every step.
-    """
-    return jax.lax.fori_loop(0, steps, lambda _, v: normalised(solve(v)), start)
-
-
 def eigenvector_tangent(G, v, dG_v):
     """The derivative `dv` of the unit eigenvector `v` of the smallest eigenvalue of the symmetric
     `G (n, n)`, given `dG v`.
@@ -76,14 +64,3 @@ def eigenvector_tangent(G, v, dG_v):
     c = jnp.trace(G) / n + 1.0  # any c > 0; this one is of G's scale
     B = G - lam * jnp.eye(n, dtype=G.dtype) + c * jnp.outer(v, v)
     return -jnp.linalg.solve(B, dG_v - v * (v @ dG_v))
-
-
-def over_leading(op, a):
-    """`a` reduced over its leading axis by the elementwise `op` (`jnp.add`, `jnp.minimum`, ...)
-    in a tree of log2(n) elementwise steps: XLA on CPU reduces a short leading axis (the views
-    of 10^5 points) some 40 times slower than this."""
-    while a.shape[0] > 1:
-        half = a.shape[0] // 2
-        head = op(a[:half], a[half : 2 * half])
-        a = jnp.concatenate([head, a[2 * half :]]) if a.shape[0] % 2 else head
-    return a[0]
