@@ -7,12 +7,14 @@ from conftest import central_difference_check
 import mvcalib as mc
 
 
-def numpy_dlt(world, pixels):
-    """Independent reference: Hartley-normalised DLT in plain NumPy (mean-distance scaling)."""
+def normalised(world, pixels, rms):
+    """Hartley's similarities T3, T2 (centroid to 0; mean or RMS distance sqrt(d)) and the
+    normalised homogeneous points."""
 
     def similarity(x):
         c = x.mean(0)
-        s = np.sqrt(x.shape[1]) / np.linalg.norm(x - c, axis=1).mean()
+        d2 = np.sum((x - c) ** 2, axis=1)
+        s = np.sqrt(x.shape[1] / np.mean(d2)) if rms else np.sqrt(x.shape[1]) / np.mean(np.sqrt(d2))
         T = np.eye(x.shape[1] + 1) * s
         T[:-1, -1], T[-1, -1] = -s * c, 1.0
         return T
@@ -20,6 +22,12 @@ def numpy_dlt(world, pixels):
     T3, T2 = similarity(world), similarity(pixels)
     Xn = np.c_[world, np.ones(len(world))] @ T3.T
     xn = np.c_[pixels, np.ones(len(pixels))] @ T2.T
+    return T3, T2, Xn, xn
+
+
+def numpy_dlt(world, pixels):
+    """Independent reference: Hartley-normalised DLT in plain NumPy (mean-distance scaling)."""
+    T3, T2, Xn, xn = normalised(world, pixels, rms=False)
     rows = []
     for X, (u, v, _) in zip(Xn, xn):
         rows.append(np.r_[X, np.zeros(4), -u * X])
@@ -72,17 +80,7 @@ def svd_dlt(world, pixels):
     """Our normalisation (RMS distance sqrt(d)) with LAPACK's SVD of L: the same least-squares
     problem, solved the textbook way. Returns P (||m3|| = 1, points in front) and the condition
     number as `calibrate` defines it, ||L||_F / s_11."""
-
-    def similarity(x):
-        c = x.mean(0)
-        s = np.sqrt(x.shape[1] / np.mean(np.sum((x - c) ** 2, axis=1)))
-        T = np.eye(x.shape[1] + 1) * s
-        T[:-1, -1], T[-1, -1] = -s * c, 1.0
-        return T
-
-    T3, T2 = similarity(world), similarity(pixels)
-    Xn = np.c_[world, np.ones(len(world))] @ T3.T
-    xn = np.c_[pixels, np.ones(len(pixels))] @ T2.T
+    T3, T2, Xn, xn = normalised(world, pixels, rms=True)
     zero = np.zeros_like(Xn)
     L = np.stack([np.c_[Xn, zero, -xn[:, :1] * Xn], np.c_[zero, Xn, -xn[:, 1:2] * Xn]], 1)
     _, sv, vt = np.linalg.svd(L.reshape(-1, 12))
