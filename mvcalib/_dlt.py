@@ -95,13 +95,15 @@ def _moments(world, pixels, w):
 
 
 def _blocks(S):
-    """S0, Su, Sv, Sq as 4 x 4 lists of scalars."""
-    return [[[S[m, _ENTRY[i, j]] for j in range(4)] for i in range(4)] for m in range(4)]
+    """The four symmetric blocks S0, Su, Sv, Sq `(4, 4, *batch)` from the moments
+    `S (4, 10, *batch)`."""
+    return [jnp.stack([jnp.stack([S[m, _ENTRY[i, j]] for j in range(4)]) for i in range(4)])
+            for m in range(4)]  # fmt: skip
 
 
 def _normal_matrix(S):
     """The 12 x 12 `L^T L` from its moments (linear in them)."""
-    S0, Su, Sv, Sq = (jnp.stack([jnp.stack(row) for row in b]) for b in _blocks(S))
+    S0, Su, Sv, Sq = _blocks(S)
     Z = jnp.zeros_like(S0)
     return jnp.block([[S0, Z, -Su], [Z, S0, -Sv], [-Su, -Sv, Sq]])
 
@@ -127,10 +129,10 @@ def _eigen(S):
     next eigenvalue is far below the others and the steps converge at once), within 3 % (median
     0.1 %) for the box corner's 19 points, within 5 % for six of them (tested).
     """
-    S0, Su, Sv, Sq = (jnp.stack([jnp.stack(row) for row in b]) for b in _blocks(S))
+    S0, Su, Sv, Sq = _blocks(S)
     floor = jnp.finfo(S.dtype).eps * sum(2 * S0[i, i] + Sq[i, i] for i in range(4)) / 12
-    # A 4 x 4 block is a list of rows, each a vector of several right-hand sides at once: fewer,
-    # wider operations than entry by entry, and a graph that XLA compiles quickly.
+    # A 4 x 4 block's rows are vectors of several right-hand sides at once: fewer, wider
+    # operations than entry by entry.
     L0 = _small.cholesky(S0, floor)
     K = jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([Su, Sv], 1))))
     Ku, Kv = K[:, :4], K[:, 4:]

@@ -41,10 +41,7 @@ def cho_solve(L, b):
 
 
 def normalised(x):
-    """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
-    if isinstance(x, list):
-        norm = jnp.sqrt(sum(xi * xi for xi in x))
-        return [xi / norm for xi in x]
+    """The vectors `x (n, *batch)` over their lengths."""
     return x / jnp.sqrt(jnp.sum(x * x, axis=0))
 
 

@@ -9,8 +9,8 @@ jax.config.update("jax_enable_x64", True)
 
 # One persistent compilation cache for the whole run, shared by the xdist workers and the
 # processes they start (notebook kernels), so that a program is compiled once, not once per
-# worker: the batched DLT and triangulation are written out entry by entry and take seconds to
-# compile. Only compilations over half a second are stored; a hit runs the same compiled code.
+# worker: most of the suite's time is XLA compiling (the written-out DLT, refine's solver).
+# Only compilations over half a second are stored; a hit runs the same compiled code.
 CACHE = pathlib.Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
 jax.config.update("jax_compilation_cache_dir", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
