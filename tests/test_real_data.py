@@ -124,6 +124,7 @@ def test_oxford_house_triangulation_matches_published_points_within_noise():
     )
 
 
+@pytest.mark.optimised
 def test_aniposelib_rig_bundle_adjusted_below_ten_pixels():
     # A real 12-camera outdoor rig: a rough starting calibration with distortion and 2-D tracks
     # of 176,868 points (NaN where unseen). aniposelib's own test bundle-adjusts it and asks for
