@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _validate
+from . import _small, _validate
 from ._camera import Camera, undistort_points
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
@@ -44,17 +44,48 @@ def _linear_point(P, x, m):
         [x[:, :1] * P[:, 2] - P[:, 0], x[:, 1:] * P[:, 2] - P[:, 1]], axis=-1
     ).reshape(-1, 4)
     rows = jnp.where(jnp.repeat(m, 2)[:, None], rows, 0.0)
-    # The smallest eigenvector of the 4 x 4 normal matrix rather than an SVD of the 2C x 4
-    # system: an order of magnitude faster batched over 10^5 points, and accurate enough after
+    # The smallest eigenvector of the 4 x 4 normal matrix (`_null_vector`) rather than an SVD of
+    # the 2C x 4 system: far faster batched over 10^5 points, and accurate enough after
     # the normalisation (noise-free points come back to ~1e-12 relative in float64). Its
     # derivative needs only the gap to the next eigenvalue, which a unique point has.
     # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok), so
     # that eigh never differentiates through the repeated eigenvalues of an all-zero matrix.
     seen = jnp.sum(m) >= 2
     G = jnp.where(seen, rows.T @ rows, jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
-    _, vectors = jnp.linalg.eigh(G)
-    v = vectors[:, 0]
+    v = _null_vector(G)
     return v[:3] / v[3]
+
+
+_STEPS = 6
+
+
+@jax.custom_jvp
+def _null_vector(G):
+    """The unit eigenvector of the symmetric 4 x 4 `G` for its smallest eigenvalue, by inverse
+    iteration written out entry by entry: batched over points it is a few fused elementwise
+    loops, where `eigh` runs LAPACK on one tiny matrix after another (~40 % of the time).
+
+    The start is the homogeneous coordinate `(0, 0, 0, 1)`; its first step is the inhomogeneous
+    least-squares point. In the normalised frame the point is within a few spreads of the
+    origin, so the start is far from orthogonal to the answer, and each step multiplies the
+    error by the ratio of the two smallest eigenvalues (noise over the rays' angle squared:
+    1e-4 for 0.3 px and rays 5 degrees apart on a 1000 px focal length).
+    """
+    rows = [[G[i, j] for j in range(4)] for i in range(4)]
+    floor = jnp.finfo(G.dtype).eps * jnp.trace(G)
+    L = _small.cholesky(rows, floor)
+
+    def step(_, v):
+        return _small.normalised(jnp.stack(_small.cho_solve(L, list(v))))
+
+    return jax.lax.fori_loop(0, _STEPS, step, jnp.zeros(4, G.dtype).at[3].set(1.0))
+
+
+@_null_vector.defjvp
+def _null_vector_jvp(primals, tangents):
+    (G,), (dG,) = primals, tangents
+    v = _null_vector(G)
+    return v, _small.eigenvector_tangent(G, v, dG @ v)
 
 
 def _diagnostics(cameras: Camera, X, pixels, m):
@@ -149,8 +180,9 @@ def triangulate(
 
     For each point: the pixels are undistorted (`undistort_points`) and taken to normalised
     camera coordinates, and the point is the null vector of the `2C x 4` linear system of its
-    visible views (the DLT of the point, solved by SVD); with `refine=True` it is then moved to
-    the minimum of its reprojection error (optimistix Levenberg–Marquardt, distortion included).
+    visible views (the DLT of the point; the smallest eigenvector of its 4 x 4 normal matrix);
+    with `refine=True` it is then moved to the minimum of its reprojection error (optimistix
+    Levenberg–Marquardt, distortion included).
     All points (and all point sets) in one jit-compiled, vectorised call. Differentiable with
     respect to the pixels and the cameras (so `jax.jacfwd` gives the first-order covariance of
     the points).
