@@ -98,7 +98,6 @@ def test_refine_rig_input_errors():
         mc.refine_rig(cal.cameras, rig.world, rig.pixels, points="loose")
 
 
-@pytest.mark.optimised
 def test_bundle_adjust_from_tracks_alone_recovers_perturbed_cameras():
     # No target: tracks of 48 points seen by 5 cameras, the cameras' poses and focal lengths
     # perturbed; rounds of triangulate / refine bring the reprojection error to the noise.
