@@ -114,6 +114,8 @@ def test_bundle_adjust_from_tracks_alone_recovers_perturbed_cameras():
     mask = np.asarray(rig.mask)
     out = mc.bundle_adjust(start, noisy, mask, distortion=(), thresholds=(50.0, 3.0), max_points=48)
     assert [r["threshold"] for r in out.rounds] == [50.0, 3.0]
+    # the last round keeps fewer points, padded to the first round's size (one compilation)
+    assert out.rounds[1]["points"] < out.rounds[0]["points"] == out.refinement.world.shape[0]
     # The wrong detections are dropped (with their tracks: a 40 px error drags the linear
     # triangulation of the point off all its views; measured 225 of 240 observations kept).
     assert 200 <= out.rounds[-1]["observations"] <= mask.sum() - 3
@@ -129,6 +131,9 @@ def test_bundle_adjust_and_aniposelib_files_refuse_bad_input(tmp_path):
         mc.bundle_adjust(rig.cameras, rig.pixels[:2])
     with pytest.raises(ValueError, match="seen by >= 3"):
         mc.bundle_adjust(rig.cameras, np.full(rig.pixels.shape, np.nan))
+    off = np.asarray(rig.pixels) + 100.0  # every observation beyond the threshold
+    with pytest.raises(ValueError, match="keeps 0 points"):
+        mc.bundle_adjust(rig.cameras, off, thresholds=(5.0,))
     bad = tmp_path / "calibration.toml"
     bad.write_text("[cam_0]\nmatrix = 3\n")
     with pytest.raises(ValueError, match="malformed|TOML"):
