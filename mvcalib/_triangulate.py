@@ -51,9 +51,15 @@ def _linear_point(P, x, m):
     # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok), so
     # that eigh never differentiates through the repeated eigenvalues of an all-zero matrix.
     seen = jnp.sum(m) >= 2
-    G = jnp.where(seen, rows.T @ rows, jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
+    G = jnp.where(seen, _gram(rows), jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
     v = _null_vector(G)
     return v[:3] / v[3]
+
+
+def _gram(A):
+    """`A^T A` for a small `A (m, n)`, as products and a sum over m: batched over points, XLA
+    fuses it, where a dot of tiny matrices per point is a loop of library calls."""
+    return jnp.sum(A[:, :, None] * A[:, None, :], axis=0)
 
 
 _STEPS = 6
@@ -95,7 +101,7 @@ def _diagnostics(cameras: Camera, X, pixels, m):
     rms = jnp.sqrt(jnp.sum(jnp.where(m, err2, 0.0)) / jnp.maximum(n, 1))
     rays = X - cameras.center
     rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-    cos = rays @ rays.T
+    cos = _gram(rays.T)
     pair = m[:, None] & m[None, :]
     angle = jnp.degrees(jnp.arccos(jnp.clip(jnp.min(jnp.where(pair, cos, 1.0)), -1.0, 1.0)))
     in_front = jnp.all(jnp.where(m, cameras.depth(X[None])[:, 0] > 0, True))
