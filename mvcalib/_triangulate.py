@@ -80,11 +80,14 @@ def _null_vector(G):
     rows = [[G[i, j] for j in range(4)] for i in range(4)]
     floor = jnp.finfo(G.dtype).eps * jnp.trace(G)
     L = _small.cholesky(rows, floor)
-
-    def step(_, v):
-        return _small.normalised(jnp.stack(_small.cho_solve(L, list(v))))
-
-    return jax.lax.fori_loop(0, _STEPS, step, jnp.zeros(4, G.dtype).at[3].set(1.0))
+    # Unrolled, entry by entry: batched, the steps fuse into one elementwise loop over the
+    # points (a fori_loop over (4,) vectors was 3.5x slower).
+    v = [jnp.zeros_like(floor)] * 3 + [jnp.ones_like(floor)]
+    for _ in range(_STEPS):
+        v = _small.cho_solve(L, v)
+        length = jnp.sqrt(sum(x * x for x in v))
+        v = [x / length for x in v]
+    return jnp.stack(v)
 
 
 @_null_vector.defjvp
