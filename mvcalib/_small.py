@@ -41,7 +41,10 @@ def cho_solve(L, b):
 
 
 def normalised(x):
-    """The vectors `x (n, *batch)` over their lengths."""
+    """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
+    if isinstance(x, list):
+        length = jnp.sqrt(sum(xi * xi for xi in x))
+        return [xi / length for xi in x]
     return x / jnp.sqrt(jnp.sum(x * x, axis=0))
 
 

@@ -48,8 +48,9 @@ def _linear_point(P, x, m):
     # the 2C x 4 system: far faster batched over 10^5 points, and accurate enough after
     # the normalisation (noise-free points come back to ~1e-12 relative in float64). Its
     # derivative needs only the gap to the next eigenvalue, which a unique point has.
-    # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok), so
-    # that eigh never differentiates through the repeated eigenvalues of an all-zero matrix.
+    # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok): an
+    # all-zero matrix would have no Cholesky factor, and repeated eigenvalues, where the null
+    # vector's derivative (which needs the gap to the next eigenvalue) is infinite.
     seen = jnp.sum(m) >= 2
     G = jnp.where(seen, _gram(rows), jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
     v = _null_vector(G)
@@ -84,9 +85,7 @@ def _null_vector(G):
     # points (a fori_loop over (4,) vectors was 3.5x slower).
     v = [jnp.zeros_like(floor)] * 3 + [jnp.ones_like(floor)]
     for _ in range(_STEPS):
-        v = _small.cho_solve(L, v)
-        length = jnp.sqrt(sum(x * x for x in v))
-        v = [x / length for x in v]
+        v = _small.normalised(_small.cho_solve(L, v))
     return jnp.stack(v)
 
 
