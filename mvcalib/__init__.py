@@ -31,6 +31,7 @@ from ._planar import calibrate_planar as calibrate_planar
 from ._refine import Cauchy as Cauchy
 from ._refine import Huber as Huber
 from ._refine import Refinement as Refinement
+from ._refine import SecantLM as SecantLM
 from ._refine import refine as refine
 from ._registration import RigidTransform as RigidTransform
 from ._registration import procrustes as procrustes

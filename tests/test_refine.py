@@ -9,6 +9,7 @@ from scipy.optimize import least_squares
 import mvcalib as mc
 
 DIST = np.array([-0.2, 0.1, 1e-3, 1e-3, 0.0])  # k1, k2, p1, p2, k3 (OpenCV order)
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
 NOISE = 0.3
 IMAGE = (1000, 1100)
 
@@ -193,3 +194,77 @@ def test_undistort_points_matches_opencv():
         # and it inverts the model: the undistorted pixels are the pinhole projections
         pinhole = eqx.tree_at(lambda c: c.dist, cams[i], jnp.zeros(5))
         np.testing.assert_allclose(ours[i], pinhole.project(world), atol=1e-8)
+
+
+# ------------------------------------------------------------------------------ the solver
+def test_secant_lm_matches_scipy_on_a_pytree_curve_fit():
+    """A generic problem, `y` a dict: a decaying exponential plus offset, against MINPACK."""
+    import optimistix as optx
+
+    t = np.linspace(0.0, 4.0, 50)
+    rng = np.random.default_rng(3)
+    data = 2.5 * np.exp(-1.3 * t) + 0.5 + 0.05 * rng.standard_normal(t.shape)
+
+    def model(a, b, c):
+        return a * np.exp(-b * t) + c
+
+    fit = least_squares(
+        lambda p: model(*p) - data, [1.0, 0.5, 0.0], method="lm", xtol=1e-15, ftol=1e-15
+    )
+    std = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * np.sum(fit.fun**2) / (50 - 3))
+    fn = lambda y, _: y["a"] * jnp.exp(-y["bc"][0] * t) + y["bc"][1] - data  # noqa: E731
+    y0 = {"a": jnp.array(1.0), "bc": jnp.array([0.5, 0.0])}
+    sol = optx.least_squares(fn, mc.SecantLM(rtol=1e-8), y0, max_steps=100)
+    ours = np.array([float(sol.value["a"]), *np.asarray(sol.value["bc"])])
+    # the cost's own rounding (1e-16 of it) resolves the parameters to ~1e-7 standard errors
+    assert np.all(np.abs(ours - fit.x) <= 1e-6 * std), (ours - fit.x) / std
+    r = np.asarray(fn(sol.value, None))
+    np.testing.assert_allclose(r @ r, np.sum(fit.fun**2), rtol=1e-14)
+    assert int(sol.result._value) == 0 and int(sol.stats["num_steps"]) < 30  # noqa: SLF001
+
+
+def intrinsic(cameras, name):
+    if name in DIST_NAMES:
+        return np.asarray(cameras.dist[:, DIST_NAMES.index(name)])
+    return np.asarray(getattr(cameras, name))
+
+
+@pytest.fixture(scope="module")
+def rig48():
+    """48 cameras: more than one chunk of `CHUNK` on a CPU."""
+    cams, world, pixels, mask = distorted_rig(0, 48)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    return seed, world, pixels, mask
+
+
+def test_default_refinement_reaches_the_tight_gauss_newton_optimum_in_fewer_steps(rig48):
+    import lineax as lx
+    import optimistix as optx
+
+    seed, world, pixels, mask = rig48
+    ours = mc.refine(seed, world, pixels, mask)
+    tight = optx.LevenbergMarquardt(1e-12, 1e-12, linear_solver=lx.Normal(lx.Cholesky()))
+    ref = mc.refine(seed, world, pixels, mask, solver=tight, max_steps=1000)
+    assert bool(np.all(ours.ok)) and bool(np.all(ref.ok))
+    np.testing.assert_allclose(ours.rms_after, ref.rms_after, rtol=1e-12)
+    # intrinsics within 1e-4 standard errors of the tight optimum; poses through the centres
+    for name in ("alpha_u", "alpha_v", "u0", "v0", *DIST_NAMES[:4]):
+        diff = intrinsic(ours.cameras, name) - intrinsic(ref.cameras, name)
+        assert np.all(np.abs(diff) <= 1e-4 * np.asarray(ours.std(name))), name
+    np.testing.assert_allclose(ours.cameras.center, ref.cameras.center, rtol=1e-7)
+    steps, ref_steps = np.asarray(ours.iterations), np.asarray(ref.iterations)
+    print(f"steps: SecantLM median {np.median(steps)} max {steps.max()}; "
+          f"Gauss-Newton LM median {np.median(ref_steps)} max {ref_steps.max()}")  # fmt: skip
+    assert steps.max() < ref_steps.max()
+
+
+def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
+    from mvcalib import _refine
+
+    seed, world, pixels, mask = rig48
+    assert _refine._chunk_size(48) == _refine.CHUNK < 48  # noqa: SLF001 (the path under test)
+    chunked = mc.refine(seed, world, pixels, mask)
+    alone = mc.refine(seed[:8], world, pixels[:8], mask[:8])  # one vmapped batch
+    np.testing.assert_allclose(chunked.cameras.alpha_u[:8], alone.cameras.alpha_u, rtol=1e-12)
+    np.testing.assert_allclose(chunked.cameras.dist[:8], alone.cameras.dist, atol=1e-12)
+    np.testing.assert_array_equal(chunked.iterations[:8], alone.iterations)
