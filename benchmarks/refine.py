@@ -344,8 +344,7 @@ def print_table(rows, jacobian_error):
         )
     print()
     header = (
-        f"{'C':>4} {'paid steps':>14} {'Σ njev':>13} {'steps ratio':>12} "
-        f"{'µs per camera step':>27}"
+        f"{'C':>4} {'paid steps':>14} {'Σ njev':>13} {'steps ratio':>12} {'µs per camera step':>27}"
     )
     units = (
         f"{'':>4} {'mvcalib':>14} {'lm':>6} {'trf':>6} {'lm':>5} {'trf':>6} "
@@ -382,7 +381,7 @@ def print_table(rows, jacobian_error):
         f"parameters: mvcalib and SciPy agree to {worst('alpha_u_max_rel_diff'):.0e} in alpha_u "
         f"(relative)\n            and {worst('k1_max_abs_diff'):.0e} in k1 (absolute), at worst."
     )
-    print("steps:      under vmap every camera of a chunk runs as many steps as its slowest one, so")
+    print("steps:      under vmap each camera of a chunk runs as many steps as its slowest one, so")
     print("            the chunks pay their size x their max steps; the loop pays Σ njev. Ratio:")
     print("            their quotient; µs per camera step: median total time / those counts.")
     for r in rows:
