@@ -102,7 +102,9 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     so it means the same for every camera), or than `atol` in every entry of `y`; or when a trial
     changes the cost by no more than its rounding, so that no comparison can tell a better point
     (an exact fit; with noise, ~1e-7 standard errors from the optimum). `y` and the residuals
-    may be any pytrees of arrays; the Jacobian comes from `jax.jacfwd`.
+    may be any pytrees of arrays; the Jacobian comes from `jax.jacfwd`, or, for a 1-D `y`, from
+    `options={"jacobian": jac}` with `jac(y, args)` the `(residuals, len(y))` matrix of the
+    flattened residuals' derivatives (as SciPy's `jac=`).
 
     **Example:**
 
@@ -122,7 +124,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     norm: Callable = optx.max_norm
     initial_damping: float = 1e-5
 
-    def _evaluate(self, fn, y, args):
+    def _evaluate(self, fn, y, args, options):
         """Residuals and Jacobian at the flat point `y`, both flattened (any pytrees in `fn`)."""
 
         def flat_fn(y_flat):
@@ -130,12 +132,15 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
             return ravel_pytree(out)[0], aux
 
         residual, aux = flat_fn(y)
-        return residual, jax.jacfwd(lambda y: flat_fn(y)[0])(y), aux
+        jacobian = options.get("jacobian")
+        if jacobian is None:
+            return residual, jax.jacfwd(lambda y: flat_fn(y)[0])(y), aux
+        return residual, jacobian(y, args), aux
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del options, f_struct, aux_struct, tags
+        del f_struct, aux_struct, tags
         y_flat, unravel = ravel_pytree(y)
-        r, J, aux = self._evaluate(_tree_fn(fn, unravel), y_flat, args)
+        r, J, aux = self._evaluate(_tree_fn(fn, unravel), y_flat, args, options)
         n = y_flat.shape[0]
         return _SecantLMState(
             residual=r,
@@ -150,7 +155,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         )
 
     def step(self, fn, y, args, options, state, tags):
-        del options, tags
+        del tags
         y, unravel = ravel_pytree(y)
         fn = _tree_fn(fn, unravel)
         r, J, S, cost = state.residual, state.jacobian, state.curvature, state.cost
@@ -161,7 +166,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         A = H + S
         factor = jnp.linalg.cholesky(A + state.damping * jnp.diag(diag))
         dy = -jax.scipy.linalg.cho_solve((factor, True), g)
-        r_new, J_new, aux_new = self._evaluate(fn, y + dy, args)
+        r_new, J_new, aux_new = self._evaluate(fn, y + dy, args, options)
         cost_new = r_new @ r_new
         cost_new = jnp.where(jnp.isnan(cost_new), jnp.inf, cost_new)  # not definite, or NaN
         accept = cost_new < cost
@@ -370,6 +375,23 @@ def _residuals(y, args):
     return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[:, None]
 
 
+def _residual_jacobian(y, args):
+    """`d _residuals / d y`, `(2 N, P)`, from the written-out `_pixel_jacobian` (under
+    `jax.jacfwd` the custom JVP would also multiply it by the identity of the tangents)."""
+    p0, R0, scale, free, world, pixels, mask, loss = args
+    p = p0 + (y @ jax.nn.one_hot(free, p0.shape[0], dtype=y.dtype)) * scale
+    J = _pixel_jacobian(p, R0, world)[..., free] * scale[free]  # (N, 2, P)
+    J = jnp.where(mask[:, None, None], J, 0.0)
+    if loss is not None:  # d (w(|r|^2) r) = w dr + r w'(|r|^2) 2 r^T dr, point by point
+        r = jnp.where(mask[:, None], _pixels(p, R0, world) - pixels, 0.0)
+        s = jnp.sum(r * r, axis=-1)
+        w = _robust_weights(loss, s)
+        dw = jax.vmap(jax.grad(lambda s: _robust_weights(loss, s)))(s)
+        rTJ = jnp.einsum("nc,ncp->np", r, J)
+        J = w[:, None, None] * J + 2.0 * (dw[:, None] * r)[:, :, None] * rTJ[:, None, :]
+    return J.reshape(-1, J.shape[-1])
+
+
 def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     dtype = world.dtype
     # Hidden points: replaced before any arithmetic, so NaN there reaches neither result nor grad.
@@ -380,13 +402,9 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     free = jnp.asarray(free)
     args = (p0, cam.R, scale, free, world, pixels, mask, loss)
     y0 = jnp.zeros(len(free), dtype)
+    options = {"jacobian": _residual_jacobian} if isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
-        _residuals,
-        solver,
-        y0,
-        args,
-        max_steps=max_steps,
-        throw=False,
+        _residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
     )
     y = sol.value
     refined = _unpack(p0.at[free].add(y * scale[free]), cam.R)
@@ -394,7 +412,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
     # (robustly weighted) residuals at the optimum, in the parameters' own units.
     r = _residuals(y, args).reshape(-1)
-    J = jax.jacfwd(lambda y: _residuals(y, args).reshape(-1))(y) / scale[free]  # dr/dp
+    J = _residual_jacobian(y, args) / scale[free]  # dr/dp
     n_obs = 2 * jnp.sum(mask)
     dof = jnp.maximum(n_obs - len(free), 1)
     sigma2 = jnp.sum(r * r) / dof

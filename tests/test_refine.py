@@ -268,3 +268,31 @@ def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
     np.testing.assert_allclose(chunked.cameras.alpha_u[:8], alone.cameras.alpha_u, rtol=1e-12)
     np.testing.assert_allclose(chunked.cameras.dist[:8], alone.cameras.dist, atol=1e-12)
     np.testing.assert_array_equal(chunked.iterations[:8], alone.iterations)
+
+
+@pytest.mark.parametrize("loss", [None, ROBUST[0]], ids=["none", "huber"])
+def test_written_out_jacobians_equal_autodiff_of_camera_project(loss):
+    """The refinement's Jacobians (`_pixel_jacobian` behind a custom JVP, and the weighted
+    residuals' `_residual_jacobian`) against forward-mode autodiff of `Camera.project`."""
+    from mvcalib import _refine as R
+
+    cams, world, pixels, mask = distorted_rig(29, 1)
+    cam = cams[0]
+    mask = np.asarray(mask[0]).copy()
+    mask[:5] = False
+    pixels = pixels[0] + 2.0 * jnp.sin(jnp.arange(len(mask)))[:, None]  # residuals of ~2 px
+    free = jnp.asarray(R._free_parameters(DIST_NAMES, (), True))  # all 16 parameters
+    p0 = R._pack(cam)
+    args = (p0, cam.R, R._scales(p0), free, world, pixels, jnp.asarray(mask), loss)
+    y = jnp.linspace(-1e-2, 1e-2, len(free))
+
+    def plain(y):  # the residuals through Camera.project, with no custom derivative
+        p = p0.at[free].add(y * args[2][free])
+        r = jnp.where(mask[:, None], R._unpack(p, cam.R).project(world) - pixels, 0.0)
+        return (r * R._robust_weights(loss, jnp.sum(r * r, -1))[:, None]).reshape(-1)
+
+    expected = jax.jacfwd(plain)(y)
+    scale = np.max(np.abs(expected))
+    np.testing.assert_allclose(R._residual_jacobian(y, args), expected, atol=1e-13 * scale)
+    through_jvp = jax.jacfwd(lambda y: R._residuals(y, args).reshape(-1))(y)
+    np.testing.assert_allclose(through_jvp, expected, atol=1e-13 * scale)
