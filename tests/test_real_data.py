@@ -150,4 +150,5 @@ def test_aniposelib_rig_bundle_adjusted_below_ten_pixels():
         f"error {before:.1f} px -> {after:.1f} px; rounds: {out.rounds}"
     )
     assert before > 20  # the starting calibration is rough (measured: 40 px)
-    assert after < 10
+    assert after < 10  # aniposelib's bar
+    assert after < 3  # measured 1.9 px (6.1 px with a Gauss-Newton LM in as many steps)
