@@ -52,7 +52,8 @@ Peak memory: XLA's memory analysis of mvcalib's compiled call (arguments + outpu
 temporaries); `tracemalloc`'s peak during a SciPy loop over 16 cameras (the loop's peak is one
 camera's; NumPy buffers and Python objects).
 
-`--quick` times the 256-camera rig only, in one round (one warm call of each).
+`--quick` times the 256-camera rig only, in three rounds (three warm calls of each; the
+median is reported: one call alone moved by up to 1.5x between runs on the shared machine).
 
 Results are printed as tables and written to `benchmarks/results/refine.json`.
 
@@ -227,7 +228,7 @@ def bench_one(problem, C, *, quick):
         outputs[name] = fn()
         first_call[name] = time.perf_counter() - t0
 
-    min_time, rounds = (0.0, 1) if quick else (1.4, 7)
+    min_time, rounds = (0.0, 3) if quick else (1.4, 7)
     stats = measure(fns, min_time=min_time, rounds=rounds)
 
     out = outputs["mvcalib"]
