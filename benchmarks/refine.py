@@ -52,8 +52,9 @@ Peak memory: XLA's memory analysis of mvcalib's compiled call (arguments + outpu
 temporaries); `tracemalloc`'s peak during a SciPy loop over 16 cameras (the loop's peak is one
 camera's; NumPy buffers and Python objects).
 
-`--quick` times the 256-camera rig only, in three rounds (three warm calls of each; the
-median is reported: one call alone moved by up to 1.5x between runs on the shared machine).
+`--quick` times the 256-camera rig only: mvcalib and SciPy's lm in three interleaved rounds (the
+median of three warm calls each: one call alone moved by up to 1.5x between runs on the shared
+machine), SciPy's trf, the slowest, in one call.
 
 Results are printed as tables and written to `benchmarks/results/refine.json`.
 
@@ -228,8 +229,11 @@ def bench_one(problem, C, *, quick):
         outputs[name] = fn()
         first_call[name] = time.perf_counter() - t0
 
-    min_time, rounds = (0.0, 3) if quick else (1.4, 7)
-    stats = measure(fns, min_time=min_time, rounds=rounds)
+    if quick:  # the ratio's two sides by the median of three calls; trf, the slowest, once
+        stats = measure({k: fns[k] for k in ("mvcalib", "scipy_lm")}, min_time=0.0, rounds=3)
+        stats |= measure({"scipy_trf": fns["scipy_trf"]}, min_time=0.0, rounds=1)
+    else:
+        stats = measure(fns, min_time=1.4, rounds=7)
 
     out = outputs["mvcalib"]
     n_visible = np.array([len(p[0]) for p in problems])
