@@ -459,11 +459,21 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )
     inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), flat(mask, (n,)))
-    chunk = _chunk_size(math.prod(batch))
+    n_cameras = math.prod(batch)
+    chunk = _chunk_size(n_cameras)
     if chunk is None:
         out = jax.vmap(kernel)(*inputs)
     else:
-        out = jax.lax.map(lambda a: kernel(*a), inputs, batch_size=chunk)
+        # Equal chunks, padded with copies of the last camera: one compiled loop body (lax.map
+        # compiles a ragged last chunk separately), at most n_chunks - 1 cameras solved twice.
+        n_chunks = -(-n_cameras // chunk)
+        size = -(-n_cameras // n_chunks)
+        pad = n_chunks * size - n_cameras
+        padded = jax.tree_util.tree_map(
+            lambda x: jnp.concatenate([x, x[-1:].repeat(pad, 0)]), inputs
+        )
+        out = jax.lax.map(lambda a: kernel(*a), padded, batch_size=size)
+        out = jax.tree_util.tree_map(lambda x: x[:n_cameras], out)
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 
@@ -523,10 +533,10 @@ def refine(
     """Minimise the reprojection error of every camera, starting from `cameras` (e.g. the DLT).
 
     One independent least-squares problem per camera, all solved in one compiled call (vmapped
-    across the rig; on one CPU device in chunks of `CHUNK` cameras) by `optimistix.least_squares`
-    with `SecantLM`, a Levenberg–Marquardt whose model keeps the residuals' curvature, and the
-    projection's Jacobian written out. The rotation is refined as a minimal
-    axis-angle increment on the seed's; the model is `Camera.project` (pinhole with
+    across the rig; on one CPU device in equal chunks of at most `CHUNK` cameras) by
+    `optimistix.least_squares` with `SecantLM`, a Levenberg–Marquardt whose model keeps the
+    residuals' curvature, and the projection's Jacobian written out. The rotation is refined as
+    a minimal axis-angle increment on the seed's; the model is `Camera.project` (pinhole with
     Brown–Conrady distortion in OpenCV's order). Derivatives of the result with respect to
     `world` and `pixels` (and the seed) come from implicit differentiation through the optimum.
 

@@ -223,39 +223,12 @@ def test_secant_lm_matches_scipy_on_a_pytree_curve_fit():
     assert int(sol.result._value) == 0 and int(sol.stats["num_steps"]) < 30  # noqa: SLF001
 
 
-def intrinsic(cameras, name):
-    if name in DIST_NAMES:
-        return np.asarray(cameras.dist[:, DIST_NAMES.index(name)])
-    return np.asarray(getattr(cameras, name))
-
-
 @pytest.fixture(scope="module")
 def rig48():
-    """48 cameras: more than one chunk of `CHUNK` on a CPU."""
+    """48 cameras: more than one chunk of `CHUNK` on a CPU (two of 24)."""
     cams, world, pixels, mask = distorted_rig(0, 48)
     seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
     return seed, world, pixels, mask
-
-
-def test_default_refinement_reaches_the_tight_gauss_newton_optimum_in_fewer_steps(rig48):
-    import lineax as lx
-    import optimistix as optx
-
-    seed, world, pixels, mask = rig48
-    ours = mc.refine(seed, world, pixels, mask)
-    tight = optx.LevenbergMarquardt(1e-12, 1e-12, linear_solver=lx.Normal(lx.Cholesky()))
-    ref = mc.refine(seed, world, pixels, mask, solver=tight, max_steps=1000)
-    assert bool(np.all(ours.ok)) and bool(np.all(ref.ok))
-    np.testing.assert_allclose(ours.rms_after, ref.rms_after, rtol=1e-12)
-    # intrinsics within 1e-4 standard errors of the tight optimum; poses through the centres
-    for name in ("alpha_u", "alpha_v", "u0", "v0", *DIST_NAMES[:4]):
-        diff = intrinsic(ours.cameras, name) - intrinsic(ref.cameras, name)
-        assert np.all(np.abs(diff) <= 1e-4 * np.asarray(ours.std(name))), name
-    np.testing.assert_allclose(ours.cameras.center, ref.cameras.center, rtol=1e-7)
-    steps, ref_steps = np.asarray(ours.iterations), np.asarray(ref.iterations)
-    print(f"steps: SecantLM median {np.median(steps)} max {steps.max()}; "
-          f"Gauss-Newton LM median {np.median(ref_steps)} max {ref_steps.max()}")  # fmt: skip
-    assert steps.max() < ref_steps.max()
 
 
 def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
@@ -270,12 +243,13 @@ def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
     np.testing.assert_array_equal(chunked.iterations[:8], alone.iterations)
 
 
-@pytest.mark.parametrize("loss", [None, ROBUST[0]], ids=["none", "huber"])
-def test_written_out_jacobians_equal_autodiff_of_camera_project(loss):
+def test_written_out_jacobians_equal_autodiff_of_camera_project():
     """The refinement's Jacobians (`_pixel_jacobian` behind a custom JVP, and the weighted
-    residuals' `_residual_jacobian`) against forward-mode autodiff of `Camera.project`."""
+    residuals' `_residual_jacobian`, here with a robust loss) against forward-mode autodiff of
+    `Camera.project`; without a loss, every refinement's agreement with SciPy tests them."""
     from mvcalib import _refine as R
 
+    loss = ROBUST[0]
     cams, world, pixels, mask = distorted_rig(29, 1)
     cam = cams[0]
     mask = np.asarray(mask[0]).copy()
