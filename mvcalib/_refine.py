@@ -90,7 +90,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     Gauss–Newton drops `S`. Where the data pin a parameter down only weakly (a camera's k1 seen
     near the image centre), `S` is not small against `J^T J` in that direction and Gauss–Newton
     (and optimistix's `LevenbergMarquardt`) converges only linearly there: on the refine
-    benchmark's 256 cameras, up to 85 steps at a rate of 0.85, against at most 19 with `S`.
+    benchmark's 256 cameras, up to 85 steps at a rate of 0.85, against at most 20 with `S`.
     Each step solves `(J^T J + S + lambda diag(J^T J)) dy = -J^T r` by Cholesky (Marquardt's
     scaling, so the damping does not depend on the parameters' units); a trial that does not
     lower the cost, or whose matrix is not positive definite, is rejected and the damping
@@ -364,10 +364,15 @@ def _scales(p0):
     return jnp.stack([f] * 5 + [one] * 3 + [d] * 3 + [one] * 5)
 
 
+def _parameters(y, p0, scale, free):
+    """The packed parameters: the seed's, with the increments `y` (natural units) on the free
+    entries, by a one-hot product rather than a scatter (cheaper under jacfwd's vmap)."""
+    return p0 + (y @ jax.nn.one_hot(free, p0.shape[0], dtype=y.dtype)) * scale
+
+
 def _residuals(y, args):
     p0, R0, scale, free, world, pixels, mask, loss = args
-    # the free entries by a one-hot product, not a scatter: cheaper under jacfwd's vmap
-    p = p0 + (y @ jax.nn.one_hot(free, p0.shape[0], dtype=y.dtype)) * scale
+    p = _parameters(y, p0, scale, free)
     r = _pixels(p, R0, world) - pixels
     r = jnp.where(mask[:, None], r, 0.0)
     if loss is None:
@@ -379,7 +384,7 @@ def _residual_jacobian(y, args):
     """`d _residuals / d y`, `(2 N, P)`, from the written-out `_pixel_jacobian` (under
     `jax.jacfwd` the custom JVP would also multiply it by the identity of the tangents)."""
     p0, R0, scale, free, world, pixels, mask, loss = args
-    p = p0 + (y @ jax.nn.one_hot(free, p0.shape[0], dtype=y.dtype)) * scale
+    p = _parameters(y, p0, scale, free)
     J = _pixel_jacobian(p, R0, world)[..., free] * scale[free]  # (N, 2, P)
     J = jnp.where(mask[:, None, None], J, 0.0)
     if loss is not None:  # d (w(|r|^2) r) = w dr + r w'(|r|^2) 2 r^T dr, point by point
@@ -407,7 +412,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
         _residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
     )
     y = sol.value
-    refined = _unpack(p0.at[free].add(y * scale[free]), cam.R)
+    refined = _unpack(_parameters(y, p0, scale, free), cam.R)
 
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
     # (robustly weighted) residuals at the optimum, in the parameters' own units.
@@ -507,7 +512,7 @@ def default_solver(dtype) -> optx.AbstractLeastSquaresSolver:
     Levenberg–Marquardt stopping at steps of 1e-5 in the parameters' natural units (float32).
 
     On the refine benchmark (256 cameras, 14 parameters) `SecantLM` ends within 1e-13 (relative)
-    of the RMS of a 1e-12 solve in at most 19 steps; optimistix's Gauss–Newton-based
+    of the RMS of a 1e-12 solve in at most 20 steps; optimistix's Gauss–Newton-based
     `LevenbergMarquardt` needs up to 98 steps for that and 65 for a 1e-6 tolerance. In float32
     the normal equations' squared condition number (~1e10 for k1, k2 against the focal length)
     is beyond the precision, so there the QR of the augmented Jacobian stays.
