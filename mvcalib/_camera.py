@@ -117,13 +117,21 @@ class Camera(eqx.Module):
         """`P = K [R | t]` (distortion is not part of `P`)."""
         return self.K @ jnp.concatenate([self.R, self.t[..., None]], axis=-1)
 
+    def _camera_coordinates(self, world):
+        """`R X + t` as three arrays `(*batch, N)`, one per coordinate: entry by entry rather than
+        a product with 3 x 3 matrices, so that XLA runs each as one elementwise loop over the
+        points (arrays with a trailing axis of 3 are slow loops on a CPU)."""
+        X = [world[..., j] for j in range(3)]
+        R, t = self.R[..., None], self.t[..., None]
+        return [sum(R[..., i, j, :] * X[j] for j in range(3)) + t[..., i, :] for i in range(3)]
+
     def to_camera(self, world) -> Float[Array, "*batch N 3"]:
         """World points `(..., N, 3)` in camera coordinates, `R X + t`."""
-        return jnp.asarray(world) @ jnp.swapaxes(self.R, -1, -2) + self.t[..., None, :]
+        return jnp.stack(self._camera_coordinates(jnp.asarray(world)), -1)
 
     def depth(self, world) -> Float[Array, "*batch N"]:
         """Depth of world points along the optical axis (positive in front of the camera)."""
-        return self.to_camera(world)[..., 2]
+        return self._camera_coordinates(jnp.asarray(world))[2]
 
     def project(self, world) -> Float[Array, "*batch N 2"]:
         """Pixels of world points `(..., N, 3)`; leading axes broadcast against the rig's.
@@ -131,12 +139,10 @@ class Camera(eqx.Module):
         One target seen by a rig of C cameras: `world` `(N, 3)` gives pixels `(C, N, 2)`.
         """
         world = _validate.floating("world", world, (None, 3))
-        xc = self.to_camera(world)
-        xy = xc[..., :2] / xc[..., 2:3]
-        xd = distort(xy, self.dist[..., None, :])
-        u = self.alpha_u[..., None] * xd[..., 0] + self.skew[..., None] * xd[..., 1]
-        u = u + self.u0[..., None]
-        v = self.alpha_v[..., None] * xd[..., 1] + self.v0[..., None]
+        xc = self._camera_coordinates(world)
+        xd, yd = _distort(xc[0] / xc[2], xc[1] / xc[2], self.dist[..., None, :])
+        u = self.alpha_u[..., None] * xd + self.skew[..., None] * yd + self.u0[..., None]
+        v = self.alpha_v[..., None] * yd + self.v0[..., None]
         return jnp.stack([u, v], -1)
 
     # ------------------------------------------------------------------ constructors
@@ -258,13 +264,17 @@ def distort(xy, dist):
 
     ```
     """
-    x, y = xy[..., 0], xy[..., 1]
+    return jnp.stack(_distort(xy[..., 0], xy[..., 1], dist), -1)
+
+
+def _distort(x, y, dist):
+    """`distort` by components: `(x_d, y_d)` from `x` and `y`."""
     k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return jnp.stack([xd, yd], -1)
+    return xd, yd
 
 
 def undistort_points(camera: Camera, pixels, *, iterations: int = 20):

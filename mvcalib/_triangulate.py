@@ -36,31 +36,36 @@ class Triangulation(eqx.Module):
     ok: Bool[Array, "*batch N"]
 
 
-def _linear_point(P, x, m):
-    """One point from `P (C, 3, 4)` (normalised, weighted cameras), `x (C, 2)` normalised
-    coordinates, `m (C,)`: the null vector of the 2C x 4 system `x P3 - P1 = 0, y P3 - P2 = 0`
-    (the rows of a view scale with its weight, since both P3 and P1 do)."""
-    rows = jnp.concatenate(
-        [x[:, :1] * P[:, 2] - P[:, 0], x[:, 1:] * P[:, 2] - P[:, 1]], axis=-1
-    ).reshape(-1, 4)
-    rows = jnp.where(jnp.repeat(m, 2)[:, None], rows, 0.0)
-    # The smallest eigenvector of the 4 x 4 normal matrix (`_null_vector`) rather than an SVD of
-    # the 2C x 4 system: far faster batched over 10^5 points, and accurate enough after
-    # the normalisation (noise-free points come back to ~1e-12 relative in float64). Its
-    # derivative needs only the gap to the next eigenvalue, which a unique point has.
-    # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok): an
-    # all-zero matrix would have no Cholesky factor, and repeated eigenvalues, where the null
-    # vector's derivative (which needs the gap to the next eigenvalue) is infinite.
-    seen = jnp.sum(m) >= 2
-    G = jnp.where(seen, _gram(rows), jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=rows.dtype)))
-    v = _null_vector(G)
-    return v[:3] / v[3]
+# The distinct entries (i, j), i <= j, of a symmetric 4 x 4 matrix.
+_PAIRS = [(i, j) for i in range(4) for j in range(i, 4)]
 
 
-def _gram(A):
-    """`A^T A` for a small `A (m, n)`, as products and a sum over m: batched over points, XLA
-    fuses it, where a dot of tiny matrices per point is a loop of library calls."""
-    return jnp.sum(A[:, :, None] * A[:, None, :], axis=0)
+def _normal_coefficients(P):
+    """`B (4, 10, C)`: the distinct entries of the 4 x 4 normal matrix of a point's rows are
+    `sum_q B[q] @ f[q]`, with `f (4, C)` its per-view features `m (x^2 + y^2), m x, m y, m`
+    (mask m, normalised pixel x, y).
+
+    A view adds `(x P3 - P1)(x P3 - P1)^T + (y P3 - P2)(y P3 - P2)^T` to the normal matrix:
+    expanded, four camera-only matrices weighted by the four features. So the normal matrices of
+    all points are one matrix product, where building each point's 2C x 4 rows moved ~20 kB per
+    point through memory.
+    """
+    P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]  # (C, 4)
+
+    def sym(a, b):  # the entries of a b^T + b a^T, (10, C)
+        return jnp.stack([a[:, i] * b[:, j] + b[:, i] * a[:, j] for i, j in _PAIRS])
+
+    return jnp.stack([sym(P3, P3) / 2, -sym(P3, P1), -sym(P3, P2), (sym(P1, P1) + sym(P2, P2)) / 2])
+
+
+def _congruence(G, s, d):
+    """`T^T G T` for `T = [[s I, d], [0, 1]]`, entry by entry (`G` as rows of entries): the normal
+    matrix of the point `X = s X' + d` in terms of `X'`."""
+    H = [[s * G[a][b] for b in range(3)] + [G[a][3] + sum(G[a][b] * d[b] for b in range(3))]
+         for a in range(4)]  # fmt: skip
+    return [[s * H[a][c] for c in range(4)] for a in range(3)] + [
+        [H[3][c] + sum(d[b] * H[b][c] for b in range(3)) for c in range(4)]
+    ]
 
 
 _STEPS = 6
@@ -68,9 +73,10 @@ _STEPS = 6
 
 @jax.custom_jvp
 def _null_vector(G):
-    """The unit eigenvector of the symmetric 4 x 4 `G` for its smallest eigenvalue, by inverse
-    iteration written out entry by entry: batched over points it is a few fused elementwise
-    loops, where `eigh` runs LAPACK on one tiny matrix after another (~40 % of the time).
+    """The unit eigenvector `(4, *batch)` of the symmetric 4 x 4 `G (4, 4, *batch)` for its
+    smallest eigenvalue, by inverse iteration written out entry by entry: batched over points
+    (the trailing axes) it is a few fused elementwise loops, where `eigh` runs LAPACK on one tiny
+    matrix after another.
 
     The start is the homogeneous coordinate `(0, 0, 0, 1)`; its first step is the inhomogeneous
     least-squares point. In the normalised frame the point is within a few spreads of the
@@ -79,10 +85,10 @@ def _null_vector(G):
     1e-4 for 0.3 px and rays 5 degrees apart on a 1000 px focal length).
     """
     rows = [[G[i, j] for j in range(4)] for i in range(4)]
-    floor = jnp.finfo(G.dtype).eps * jnp.trace(G)
+    floor = jnp.finfo(G.dtype).eps * (G[0, 0] + G[1, 1] + G[2, 2] + G[3, 3])
     L = _small.cholesky(rows, floor)
-    # Unrolled, entry by entry: batched, the steps fuse into one elementwise loop over the
-    # points (a fori_loop over (4,) vectors was 3.5x slower).
+    # Unrolled, entry by entry: the steps fuse into one elementwise loop over the points (a
+    # fori_loop over (4,) vectors was 3.5x slower).
     v = [jnp.zeros_like(floor)] * 3 + [jnp.ones_like(floor)]
     for _ in range(_STEPS):
         v = _small.normalised(_small.cho_solve(L, v))
@@ -93,24 +99,11 @@ def _null_vector(G):
 def _null_vector_jvp(primals, tangents):
     (G,), (dG,) = primals, tangents
     v = _null_vector(G)
-    return v, _small.eigenvector_tangent(G, v, dG @ v)
-
-
-def _diagnostics(cameras: Camera, X, pixels, m):
-    px = cameras.project(X[None])[:, 0]
-    err2 = jnp.sum((px - pixels) ** 2, -1)
-    n = jnp.sum(m)
-    rms = jnp.sqrt(jnp.sum(jnp.where(m, err2, 0.0)) / jnp.maximum(n, 1))
-    rays = X - cameras.center
-    rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-    cos = _gram(rays.T)
-    pair = m[:, None] & m[None, :]
-    angle = jnp.degrees(jnp.arccos(jnp.clip(jnp.min(jnp.where(pair, cos, 1.0)), -1.0, 1.0)))
-    in_front = jnp.all(jnp.where(m, cameras.depth(X[None])[:, 0] > 0, True))
-    # A point seen by fewer than two views has no position: its diagnostics are NaN, not
-    # whatever the rounding of its stand-in happened to give.
-    rms, angle = (jnp.where(n >= 2, x, jnp.nan) for x in (rms, angle))
-    return n, rms, angle, in_front
+    batch = lambda a: jnp.moveaxis(a.reshape(a.shape[: a.ndim - v.ndim + 1] + (-1,)), -1, 0)  # noqa: E731
+    dv = jax.vmap(lambda G, v, dG: _small.eigenvector_tangent(G, v, dG @ v))(
+        batch(G), batch(v), batch(dG)
+    )
+    return v, jnp.moveaxis(dv, 0, -1).reshape(v.shape)
 
 
 def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
@@ -123,6 +116,37 @@ def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
     return jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, X0)
 
 
+def _diagnostics(cameras: Camera, X, u, v, m):
+    """Views, reprojection RMS, widest ray angle and in-front flag of the points `X (N, 3)`.
+
+    Computed as `(C, N)` arrays over all views at once, summed over the views by a product with
+    ones: XLA's reductions over a leading axis, and over short trailing ones, are slow on a CPU.
+    """
+    w = m.astype(X.dtype)
+    views = jnp.ones(w.shape[0], w.dtype)
+    n = views @ w
+    q = cameras.project(X)
+    err2 = (q[..., 0] - u) ** 2 + (q[..., 1] - v) ** 2
+    rms = jnp.sqrt(views @ (w * err2) / jnp.maximum(n, 1.0))
+    # Unit rays from the centres, by component (C, N); then, one view at a time, its cosines
+    # with every view, keeping the smallest over pairs of views that see the point (a view with
+    # itself gives 1): the widest angle.
+    rays = [X[:, k] - cameras.center[:, k, None] for k in range(3)]
+    length = jnp.sqrt(sum(r * r for r in rays))
+    rays = jax.lax.optimization_barrier([r / length for r in rays])  # not recomputed per view
+
+    def smallest(a, cos):
+        return jnp.minimum(cos, jnp.where(m[a] & m, sum(r[a] * r for r in rays), 1.0))
+
+    cos = jax.lax.fori_loop(1, w.shape[0], smallest, smallest(0, 1.0))
+    angle = jnp.degrees(jnp.arccos(jnp.clip(jnp.min(cos, 0), -1.0, 1.0)))
+    in_front = views @ (w * (cameras.depth(X) <= 0)) == 0
+    # A point seen by fewer than two views has no position: its diagnostics are NaN, not
+    # whatever the rounding of its stand-in happened to give.
+    rms, angle = (jnp.where(n >= 2, x, jnp.nan) for x in (rms, angle))
+    return n, rms, angle, in_front
+
+
 @functools.partial(jax.jit, static_argnames=("refine", "max_steps"))
 def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps):
     # Hartley's normalisation for triangulation: undistorted pixels to normalised camera
@@ -132,46 +156,64 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps):
     # that, as in pixel units, a pixel of noise counts the same in every camera.
     # Hidden pixels are replaced before any arithmetic, so that NaN in them reaches neither the
     # points nor their derivatives.
-    m = mask & jnp.all(jnp.isfinite(pixels), -1)
-    principal = jnp.stack([cameras.u0, cameras.v0], -1)[:, None]
-    pixels = jnp.where(m[..., None], pixels, principal)
+    m = mask & jnp.isfinite(pixels[..., 0]) & jnp.isfinite(pixels[..., 1])
+    # (C, N) arrays per coordinate from here on: XLA's loops over arrays with a trailing axis of
+    # length 2 are several times slower on a CPU.
+    pu = jnp.where(m, pixels[..., 0], cameras.u0[:, None])
+    pv = jnp.where(m, pixels[..., 1], cameras.v0[:, None])
     # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
     ideal = jax.lax.cond(
-        jnp.any(cameras.dist != 0), lambda p: undistort_points(cameras, p), lambda p: p, pixels
-    )  # (C, N, 2)
-    y = (ideal[..., 1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
-    x = (ideal[..., 0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
-    normalised = jnp.stack([x, y], -1)
+        jnp.any(cameras.dist != 0),
+        lambda u, v: tuple(jnp.moveaxis(undistort_points(cameras, jnp.stack([u, v], -1)), -1, 0)),
+        lambda u, v: (u, v),
+        pu,
+        pv,
+    )
+    y = (ideal[1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
+    x = (ideal[0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
+
     centres = cameras.center
+    middle = jnp.mean(centres, 0)
+    ms = jnp.mean(jnp.sum((centres - middle) ** 2, -1))
+    # `where` before `sqrt` and division: coincident cameras have a zero spread, and the
+    # derivative must stay finite (0 * inf in the backward pass would be NaN).
+    spread = jnp.sqrt(jnp.where(ms > 0, ms, 1.0))
     focal = jnp.sqrt(jnp.abs(cameras.alpha_u * cameras.alpha_v))
+    weight = focal / jnp.mean(focal)
+    t = (cameras.R @ middle + cameras.t) / spread
+    P = weight[:, None, None] * jnp.concatenate([cameras.R, t[..., None]], axis=-1)
 
-    def frame(mm):
-        """The normalised, weighted cameras for one point, from the views that see it only."""
-        w = mm.astype(centres.dtype)
-        n = jnp.maximum(w.sum(), 1.0)
-        middle = (w[:, None] * centres).sum(0) / n
-        # `where` before `sqrt` and division: a point seen by fewer than two views has a zero
-        # spread, and its derivative must stay finite (0 * inf in the backward pass would turn
-        # the gradient of every camera into NaN, even where that point's output is not used).
-        ms = (w * jnp.sum((centres - middle) ** 2, -1)).sum() / n
-        spread = jnp.sqrt(jnp.where(ms > 0, ms, 1.0))
-        t = (jnp.einsum("cij,j->ci", cameras.R, middle) + cameras.t) / spread
-        mean_focal = (w * focal).sum() / n
-        weight = focal / jnp.where(mean_focal > 0, mean_focal, 1.0)
-        Rt = weight[:, None, None] * jnp.concatenate([cameras.R, t[..., None]], axis=-1)
-        return Rt, middle, spread
-
-    def one(xn, px, mm):
-        Rt, middle, spread = frame(mm)
-        X = middle + spread * _linear_point(Rt, xn, mm)
-        if refine:
-            X = _refine_point(cameras, X, px, mm, max_steps)
-        n, rms, angle, in_front = _diagnostics(cameras, X, px, mm)
-        ok = (n >= 2) & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X))
-        X = jnp.where(n >= 2, X, jnp.nan)
-        return X, n, rms, angle, ok
-
-    X, n, rms, angle, ok = jax.vmap(one, in_axes=(1, 1, 1))(normalised, pixels, m)
+    # The normal matrices in that rig frame are one product (`_normal_coefficients`; XLA's
+    # products of small matrices are slower than one with the features stacked); each is
+    # then moved to its point's own frame, the centroid and spread of just the views that see
+    # the point, so that a hidden view changes nothing (the linear solution depends on the frame).
+    w = m.astype(x.dtype)
+    n = jnp.ones_like(w[:, 0]) @ w  # (a sum over the leading axis is slow on a CPU)
+    B = _normal_coefficients(P)
+    features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
+    entries = jnp.concatenate(B, -1) @ features
+    G = [[None] * 4 for _ in range(4)]
+    for k, (i, j) in enumerate(_PAIRS):
+        G[i][j] = G[j][i] = entries[k]
+    own = (centres - middle) / spread
+    d = (own.T @ w) / jnp.maximum(n, 1.0)  # (3, N): the point's frame in the rig's
+    ms = (jnp.sum(own * own, -1) @ w) / jnp.maximum(n, 1.0) - jnp.sum(d * d, 0)
+    s = jnp.sqrt(jnp.where(ms > 0, ms, 1.0))
+    G = _congruence(G, s, d)
+    # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok): an
+    # all-zero matrix would have no Cholesky factor, and repeated eigenvalues, where the null
+    # vector's derivative (which needs the gap to the next eigenvalue) is infinite.
+    G = [[jnp.where(n >= 2, G[i][j], float(4 - i) if i == j else 0.0) for j in range(4)]
+         for i in range(4)]  # fmt: skip
+    v = _null_vector(jnp.stack([jnp.stack(row) for row in G]))  # (4, N)
+    X = middle + spread * (d + s * v[:3] / v[3]).T  # (N, 3)
+    if refine:
+        X = jax.vmap(_refine_point, in_axes=(None, 0, 1, 1, None))(
+            cameras, X, jnp.stack([pu, pv], -1), m, max_steps
+        )
+    n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m)
+    ok = (n >= 2) & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
+    X = jnp.where((n >= 2)[:, None], X, jnp.nan)
     return Triangulation(points=X, views=n.astype(jnp.int32), rms=rms, angle=angle, ok=ok)
 
 
