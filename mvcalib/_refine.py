@@ -319,7 +319,13 @@ def _pixels_jvp(primals, tangents):
 
 
 def _pixel_jacobian(p, R0, world):
-    """`d _pixels / d p`, `(N, 2, 16)`: the chain rule of `Camera.project`, entry by entry."""
+    """`d _pixels / d p`, `(N, 2, 16)`."""
+    return jnp.stack([jnp.stack(c, -1) for c in _pixel_columns(p, R0, world)], -1)
+
+
+def _pixel_columns(p, R0, world):
+    """`d _pixels / d p` as 16 columns `(du / dp_k, dv / dp_k)`, each `(N,)`: the chain rule of
+    `Camera.project`, entry by entry."""
     au, av, s = p[0], p[1], p[4]
     k1, k2, p1, p2, k3 = (p[i] for i in range(11, 16))
     R = rodrigues(p[5:8]) @ R0
@@ -352,7 +358,7 @@ def _pixel_jacobian(p, R0, world):
         columns.append(tuple(sum(row[i] * dc[i] for i in range(3)) for row in duv_dc))
     columns += [(duv_dc[0][k], duv_dc[1][k]) for k in range(3)]  # translation
     columns += [(au * a + s * b, av * b) for a, b in zip(dxd, dyd)]  # distortion
-    return jnp.stack([jnp.stack(c, -1) for c in columns], -1)
+    return columns
 
 
 def _scales(p0):
@@ -365,36 +371,42 @@ def _scales(p0):
 
 
 def _parameters(y, p0, scale, free):
-    """The packed parameters: the seed's, with the increments `y` (natural units) on the free
-    entries, by a one-hot product rather than a scatter (cheaper under jacfwd's vmap)."""
-    return p0 + (y @ jax.nn.one_hot(free, p0.shape[0], dtype=y.dtype)) * scale
+    """The packed parameters: the seed's, with the increments `y` (natural units) on the `free`
+    entries (a tuple), by a one-hot product rather than a scatter (cheaper under jacfwd's vmap)."""
+    one_hot = jax.nn.one_hot(jnp.asarray(free), p0.shape[0], dtype=y.dtype)
+    return p0 + (y @ one_hot) * scale
 
 
-def _residuals(y, args):
-    p0, R0, scale, free, world, pixels, mask, loss = args
+def _residuals(y, args, free):
+    """The (robustly weighted) residuals `(2, N)`: all u, then all v (one array per coordinate,
+    as the Jacobian's columns are built)."""
+    p0, R0, scale, world, pixels, mask, loss = args
     p = _parameters(y, p0, scale, free)
-    r = _pixels(p, R0, world) - pixels
-    r = jnp.where(mask[:, None], r, 0.0)
+    r = jnp.where(mask[:, None], _pixels(p, R0, world) - pixels, 0.0).T
     if loss is None:
         return r
-    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[:, None]
+    return r * _robust_weights(loss, r[0] * r[0] + r[1] * r[1])
 
 
-def _residual_jacobian(y, args):
-    """`d _residuals / d y`, `(2 N, P)`, from the written-out `_pixel_jacobian` (under
-    `jax.jacfwd` the custom JVP would also multiply it by the identity of the tangents)."""
-    p0, R0, scale, free, world, pixels, mask, loss = args
+def _residual_jacobian(y, args, free):
+    """`d _residuals / d y`, `(2 N, P)`, from the written-out `_pixel_columns` (under
+    `jax.jacfwd` the custom JVP would also multiply by the identity of the tangents); only the
+    free columns are built, each as one array over the points."""
+    p0, R0, scale, world, pixels, mask, loss = args
     p = _parameters(y, p0, scale, free)
-    J = _pixel_jacobian(p, R0, world)[..., free] * scale[free]  # (N, 2, P)
-    J = jnp.where(mask[:, None, None], J, 0.0)
+    columns = _pixel_columns(p, R0, world)
+    Ju, Jv = (jnp.stack([jnp.where(mask, columns[k][c], 0.0) * scale[k] for k in free], -1)
+              for c in range(2))  # fmt: skip
     if loss is not None:  # d (w(|r|^2) r) = w dr + r w'(|r|^2) 2 r^T dr, point by point
         r = jnp.where(mask[:, None], _pixels(p, R0, world) - pixels, 0.0)
-        s = jnp.sum(r * r, axis=-1)
+        s = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
         w = _robust_weights(loss, s)
         dw = jax.vmap(jax.grad(lambda s: _robust_weights(loss, s)))(s)
-        rTJ = jnp.einsum("nc,ncp->np", r, J)
-        J = w[:, None, None] * J + 2.0 * (dw[:, None] * r)[:, :, None] * rTJ[:, None, :]
-    return J.reshape(-1, J.shape[-1])
+        rTJ = r[:, :1] * Ju + r[:, 1:] * Jv
+        Ju, Jv = (
+            w[:, None] * J + 2.0 * (dw * r[:, c])[:, None] * rTJ for c, J in enumerate((Ju, Jv))
+        )
+    return jnp.concatenate([Ju, Jv])
 
 
 def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
@@ -404,20 +416,21 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     pixels = jnp.where(mask[:, None], pixels, 0.0)
     p0 = _pack(cam)
     scale = _scales(p0)
-    free = jnp.asarray(free)
-    args = (p0, cam.R, scale, free, world, pixels, mask, loss)
+    args = (p0, cam.R, scale, world, pixels, mask, loss)
+    residuals = functools.partial(_residuals, free=free)
+    jacobian = functools.partial(_residual_jacobian, free=free)
     y0 = jnp.zeros(len(free), dtype)
-    options = {"jacobian": _residual_jacobian} if isinstance(solver, SecantLM) else {}
+    options = {"jacobian": jacobian} if isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
-        _residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
+        residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
     )
     y = sol.value
     refined = _unpack(_parameters(y, p0, scale, free), cam.R)
 
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
     # (robustly weighted) residuals at the optimum, in the parameters' own units.
-    r = _residuals(y, args).reshape(-1)
-    J = _residual_jacobian(y, args) / scale[free]  # dr/dp
+    r = residuals(y, args).reshape(-1)
+    J = jacobian(y, args) / scale[jnp.asarray(free)]  # dr/dp
     n_obs = 2 * jnp.sum(mask)
     dof = jnp.maximum(n_obs - len(free), 1)
     sigma2 = jnp.sum(r * r) / dof
