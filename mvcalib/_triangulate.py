@@ -147,8 +147,42 @@ def _diagnostics(cameras: Camera, X, u, v, m):
     return n, rms, angle, in_front
 
 
-@functools.partial(jax.jit, static_argnames=("refine", "max_steps"))
-def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps):
+# Points per loop step, times the number of views: on a CPU, the (C, n) arrays of a chunk of
+# 2^15 / C points stay in cache (a fifth of the time moving 100k points' arrays through memory).
+CHUNK = 2**15
+
+
+def _chunk_size(n_cameras: int, n_points: int) -> int | None:
+    """Points triangulated side by side in one loop step: on one CPU device, `CHUNK // C` at a
+    time; else all (accelerators want the whole batch, and a point axis sharded over several
+    devices must not be cut into a sequential loop)."""
+    size = max(CHUNK // n_cameras, 256)
+    if jax.default_backend() != "cpu" or jax.device_count() > 1 or n_points <= size:
+        return None
+    return size
+
+
+@functools.partial(jax.jit, static_argnames=("refine", "max_steps", "chunk"))
+def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
+    run = functools.partial(
+        _triangulate_points, cameras, min_angle=min_angle, refine=refine, max_steps=max_steps
+    )
+    if chunk is None:
+        return run(pixels, mask)
+    # Equal chunks, padded with copies of the last point.
+    n = pixels.shape[1]
+    n_chunks = -(-n // chunk)
+    pad = n_chunks * chunk - n
+
+    def split(a):
+        a = jnp.concatenate([a, jnp.repeat(a[:, -1:], pad, 1)], 1)
+        return jnp.moveaxis(a.reshape(a.shape[0], n_chunks, chunk, *a.shape[2:]), 1, 0)
+
+    out = jax.lax.map(lambda a: run(*a), (split(pixels), split(mask)))
+    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:])[:n], out)
+
+
+def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     # Hartley's normalisation for triangulation: undistorted pixels to normalised camera
     # coordinates (K^-1 x), and the world frame moved to the cameras' centroid and scaled by
     # their spread, so that every entry of the linear system is of order one in float32 too.
@@ -280,6 +314,7 @@ def triangulate(
         min_angle=jnp.asarray(min_angle, pixels.dtype),
         refine=bool(refine),
         max_steps=int(max_steps),
+        chunk=_chunk_size(C, pixels.shape[-2]),
     )
     batch = pixels.shape[:-3]
     flat = run if not batch else jax.vmap(run)

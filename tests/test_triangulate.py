@@ -212,3 +212,28 @@ def test_points_match_a_per_point_numpy_svd_reference():
     reference = np.array(reference)
     np.testing.assert_allclose(out.points, reference, rtol=1e-9, atol=1e-9 * 200)
     assert float(np.sqrt(np.mean(np.sum((reference - np.asarray(world)) ** 2, -1)))) > 1e-3
+
+
+def test_chunks_of_points_equal_one_batch(monkeypatch):
+    # On a CPU, points are triangulated in chunks (padded with copies of the last point); the
+    # chunked answer must be the one-batch answer, hidden views and all.
+    from mvcalib import _triangulate
+
+    cameras, _ = ring(4, seed=13)
+    world = np.random.default_rng(13).uniform(0.0, 160.0, (600, 3))
+    pixels = np.asarray(cameras.project(world))
+    pixels = pixels + 0.3 * np.random.default_rng(14).standard_normal(pixels.shape)
+    mask = np.random.default_rng(15).random(pixels.shape[:2]) > 0.2
+    monkeypatch.setattr(_triangulate, "CHUNK", 10**9)
+    assert _triangulate._chunk_size(4, 600) is None
+    whole = mc.triangulate(cameras, pixels, mask)
+    monkeypatch.setattr(_triangulate, "CHUNK", 4 * 256)
+    assert _triangulate._chunk_size(4, 600) == 256  # three chunks, the last one padded
+    chunked = mc.triangulate(cameras, pixels, mask)
+    for name in ("points", "rms", "angle"):
+        np.testing.assert_allclose(
+            getattr(chunked, name), getattr(whole, name), rtol=1e-12, atol=1e-12, err_msg=name
+        )
+    for name in ("views", "ok"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+    assert np.isnan(np.asarray(whole.points)).any()  # some points have fewer than two views
