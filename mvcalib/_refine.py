@@ -16,7 +16,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from . import _validate
+from . import _sharding, _validate
 from ._camera import Camera
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import rodrigues
@@ -455,16 +455,12 @@ CHUNK = 32
 
 
 def _chunk_size(n_cameras: int) -> int | None:
-    """Cameras solved side by side in one loop: on one CPU device, `CHUNK` at a time; else all.
-
-    A vmapped solve runs until its slowest camera converges, and on a CPU a chunk's Jacobians
-    stay in cache: on the refine benchmark (256 cameras) chunks of 32 take a third of the time of
-    one batch of 256. Accelerators want the whole batch at once, and a camera axis sharded over
-    several devices must not be cut into a sequential loop.
+    """Cameras solved side by side in one loop (`_sharding.cpu_chunk`): on one CPU device, at most
+    `CHUNK` at a time; else all. A vmapped solve runs until its slowest camera converges, and on a
+    CPU a chunk's Jacobians stay in cache: on the refine benchmark (256 cameras) chunks of 32 take
+    a third of the time of one batch of 256.
     """
-    if jax.default_backend() != "cpu" or jax.device_count() > 1 or n_cameras <= CHUNK:
-        return None
-    return CHUNK
+    return _sharding.cpu_chunk(n_cameras, CHUNK)
 
 
 @eqx.filter_jit
@@ -477,21 +473,7 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )
     inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), flat(mask, (n,)))
-    n_cameras = math.prod(batch)
-    chunk = _chunk_size(n_cameras)
-    if chunk is None:
-        out = jax.vmap(kernel)(*inputs)
-    else:
-        # Equal chunks, padded with copies of the last camera: one compiled loop body (lax.map
-        # compiles a ragged last chunk separately), at most n_chunks - 1 cameras solved twice.
-        n_chunks = -(-n_cameras // chunk)
-        size = -(-n_cameras // n_chunks)
-        pad = n_chunks * size - n_cameras
-        padded = jax.tree_util.tree_map(
-            lambda x: jnp.concatenate([x, x[-1:].repeat(pad, 0)]), inputs
-        )
-        out = jax.lax.map(lambda a: kernel(*a), padded, batch_size=size)
-        out = jax.tree_util.tree_map(lambda x: x[:n_cameras], out)
+    out = _sharding.chunked_map(jax.vmap(kernel), inputs, _chunk_size(math.prod(batch)))
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 

@@ -9,6 +9,7 @@ solves its own cameras. `shard` only puts the arrays there.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -114,3 +115,43 @@ def shard(tree, mesh: Mesh | None = None, *, axis: int | None = 0):
         return jax.device_put(x, NamedSharding(mesh, spec))
 
     return jax.tree_util.tree_map(place, tree)
+
+
+def cpu_chunk(n: int, size: int) -> int | None:
+    """`size`, the most entries of a batch of `n` to run side by side in one step of a loop, on one
+    CPU device where `n > size`; else None: run all `n` at once.
+
+    On a CPU a chunk's intermediate arrays stay in cache, and a loop of vmapped solves pays each
+    chunk's slowest member rather than the whole batch's. Accelerators want the whole batch, and
+    an axis sharded over several devices must not be cut into a sequential loop.
+    """
+    if jax.default_backend() != "cpu" or jax.device_count() > 1 or n <= size:
+        return None
+    return size
+
+
+def chunked_map(fn, inputs: tuple, size: int | None, *, axis: int = 0):
+    """`fn(*inputs)` for a `fn` batched along `axis` of every input array and along the leading
+    axis of every output, run as a `lax.map` over equal chunks of at most `size` entries (all at
+    once if `size` is None).
+
+    The chunks are equal, padded with copies of the last entry (at most one fewer than the number
+    of chunks), so that the loop body compiles once: `lax.map` compiles a ragged last chunk
+    separately. The padding's outputs are dropped.
+    """
+    if size is None:
+        return fn(*inputs)
+    n = jax.tree_util.tree_leaves(inputs)[0].shape[axis]
+    n_chunks = -(-n // size)
+    size = -(-n // n_chunks)
+    pad = n_chunks * size - n
+
+    def split(a):
+        last = jax.lax.slice_in_dim(a, n - 1, n, axis=axis)
+        a = jnp.concatenate([a, jnp.repeat(last, pad, axis)], axis)
+        return jnp.moveaxis(
+            a.reshape(a.shape[:axis] + (n_chunks, size) + a.shape[axis + 1 :]), axis, 0
+        )
+
+    out = jax.lax.map(lambda chunk: fn(*chunk), jax.tree_util.tree_map(split, inputs))
+    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:])[:n], out)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _small, _validate
+from . import _sharding, _small, _validate
 from ._camera import Camera, undistort_points
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
@@ -153,13 +153,9 @@ CHUNK = 2**15
 
 
 def _chunk_size(n_cameras: int, n_points: int) -> int | None:
-    """Points triangulated side by side in one loop step: on one CPU device, `CHUNK // C` at a
-    time; else all (accelerators want the whole batch, and a point axis sharded over several
-    devices must not be cut into a sequential loop)."""
-    size = max(CHUNK // n_cameras, 256)
-    if jax.default_backend() != "cpu" or jax.device_count() > 1 or n_points <= size:
-        return None
-    return size
+    """Points triangulated side by side in one loop step (`_sharding.cpu_chunk`): on one CPU
+    device, at most `CHUNK // C` at a time; else all."""
+    return _sharding.cpu_chunk(n_points, max(CHUNK // n_cameras, 256))
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "max_steps", "chunk"))
@@ -167,19 +163,7 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
     run = functools.partial(
         _triangulate_points, cameras, min_angle=min_angle, refine=refine, max_steps=max_steps
     )
-    if chunk is None:
-        return run(pixels, mask)
-    # Equal chunks, padded with copies of the last point.
-    n = pixels.shape[1]
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-
-    def split(a):
-        a = jnp.concatenate([a, jnp.repeat(a[:, -1:], pad, 1)], 1)
-        return jnp.moveaxis(a.reshape(a.shape[0], n_chunks, chunk, *a.shape[2:]), 1, 0)
-
-    out = jax.lax.map(lambda a: run(*a), (split(pixels), split(mask)))
-    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:])[:n], out)
+    return _sharding.chunked_map(run, (pixels, mask), chunk, axis=1)
 
 
 def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):

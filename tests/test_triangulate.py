@@ -215,20 +215,20 @@ def test_points_match_a_per_point_numpy_svd_reference():
 
 
 def test_chunks_of_points_equal_one_batch(monkeypatch):
-    # On a CPU, points are triangulated in chunks (padded with copies of the last point); the
+    # On a CPU, points are triangulated in equal chunks (padded with copies of the last point); the
     # chunked answer must be the one-batch answer, hidden views and all.
     from mvcalib import _triangulate
 
     cameras, _ = ring(4, seed=13)
-    world = np.random.default_rng(13).uniform(0.0, 160.0, (600, 3))
+    world = np.random.default_rng(13).uniform(0.0, 160.0, (601, 3))
     pixels = np.asarray(cameras.project(world))
     pixels = pixels + 0.3 * np.random.default_rng(14).standard_normal(pixels.shape)
     mask = np.random.default_rng(15).random(pixels.shape[:2]) > 0.2
     monkeypatch.setattr(_triangulate, "CHUNK", 10**9)
-    assert _triangulate._chunk_size(4, 600) is None
+    assert _triangulate._chunk_size(4, 601) is None
     whole = mc.triangulate(cameras, pixels, mask)
     monkeypatch.setattr(_triangulate, "CHUNK", 4 * 256)
-    assert _triangulate._chunk_size(4, 600) == 256  # three chunks, the last one padded
+    assert _triangulate._chunk_size(4, 601) == 256  # three equal chunks of 201: 2 padded
     chunked = mc.triangulate(cameras, pixels, mask)
     for name in ("points", "rms", "angle"):
         np.testing.assert_allclose(
