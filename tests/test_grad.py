@@ -200,13 +200,21 @@ def test_dlt_second_derivatives_are_finite_for_a_symmetric_target():
     def f(p):
         return jnp.sum(mc.dlt(world, p) ** 3)
 
-    H = jax.hessian(f)(pixels)
+    @jax.jit
+    def grad_and_hessian(p):
+        # Forward over reverse, as `jax.hessian`: column k of H is the jvp of the gradient along
+        # the k-th unit vector, and the primal output is the gradient, so that the differences
+        # of the gradient need no second compilation.
+        units = jnp.eye(p.size, dtype=p.dtype).reshape(-1, *p.shape)
+        g, H = jax.vmap(lambda v: jax.jvp(jax.grad(f), (p,), (v,)))(units)
+        return g[0], jnp.moveaxis(H, 0, -1).reshape(p.shape + p.shape)
+
+    _, H = grad_and_hessian(pixels)
     assert np.isfinite(np.asarray(H)).all()
     direction = np.random.default_rng(0).standard_normal(pixels.shape)
     step = 1e-5
-    fd = (jax.grad(f)(pixels + step * direction) - jax.grad(f)(pixels - step * direction)) / (
-        2 * step
-    )
+    fd = (grad_and_hessian(pixels + step * direction)[0]
+          - grad_and_hessian(pixels - step * direction)[0]) / (2 * step)  # fmt: skip
     np.testing.assert_allclose(
         jnp.tensordot(H, direction, axes=2), fd, rtol=0, atol=1e-7 * float(jnp.abs(fd).max())
     )
@@ -425,13 +433,19 @@ def test_fitting_a_rig_inside_a_users_own_loss(scene):
 # ------------------------------------------------------------------------ whole-rig solvers
 def check_directional(f, x, direction, *, step=1e-4, rtol=1e-5):
     """`jax.jvp` and `jax.grad` of the scalar `f` at `x` along `direction` against a central
-    difference, without `jit` (these entry points validate their input eagerly)."""
-    _, jvp = jax.jvp(f, (x,), (direction,))
-    grad = jax.grad(f)(x)
+    difference, without `jit` (these entry points validate their input eagerly).
+
+    `f` returns `(value, aux)`. As in `check_derivatives`, the values for the difference come
+    from the program that computes the forward derivative (its primal output), so that `f`
+    itself is not compiled a third time. Returns `aux` at `x`."""
+    at = lambda x: jax.jvp(f, (x,), (direction,), has_aux=True)  # noqa: E731
+    _, jvp, aux = at(x)
+    grad, _ = jax.grad(f, has_aux=True)(x)
     assert np.isfinite(np.asarray(grad)).all()
-    fd = (f(x + step * direction) - f(x - step * direction)) / (2 * step)
+    fd = (at(x + step * direction)[0] - at(x - step * direction)[0]) / (2 * step)
     np.testing.assert_allclose(float(jvp), float(fd), rtol=rtol)
     np.testing.assert_allclose(float(jnp.vdot(grad, direction)), float(fd), rtol=rtol)
+    return aux
 
 
 def test_refine_rig_is_differentiable_through_its_optimum():
@@ -443,7 +457,7 @@ def test_refine_rig_is_differentiable_through_its_optimum():
 
     def f(pixels):
         c = mc.refine_rig(seed, rig.world, pixels, distortion=("k1",), solver=solver).cameras
-        return jnp.vdot(w, jnp.stack([c.alpha_u[1], c.dist[0, 0], c.t[2, 2]]))
+        return jnp.vdot(w, jnp.stack([c.alpha_u[1], c.dist[0, 0], c.t[2, 2]])), None
 
     direction = jnp.asarray(np.random.default_rng(2).standard_normal(rig.pixels.shape))
     check_directional(f, rig.pixels, direction)
@@ -471,12 +485,11 @@ def test_calibrate_planar_is_differentiable_through_its_optimum():
     solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12)
     w = np.random.default_rng(1).standard_normal(4)
 
-    assert int(mc.calibrate_planar(grid, pixels, mask, solver=solver).result) == 0  # converged
-
     def f(px):
         out = mc.calibrate_planar(grid, px, mask, solver=solver)
         c = out.camera
-        return jnp.vdot(w, jnp.stack([out.K[0, 0], out.K[1, 2], c.dist[0, 0], c.t[1, 2]]))
+        return jnp.vdot(w, jnp.stack([out.K[0, 0], out.K[1, 2], c.dist[0, 0], c.t[1, 2]])), out
 
     direction = np.random.default_rng(2).standard_normal(pixels.shape) * mask[..., None]
-    check_directional(f, jnp.asarray(pixels), jnp.asarray(direction), rtol=1e-4)
+    out = check_directional(f, jnp.asarray(pixels), jnp.asarray(direction), rtol=1e-4)
+    assert int(out.result) == 0  # converged
