@@ -130,6 +130,30 @@ def test_batched_call_equals_per_camera_calls(C):
         np.testing.assert_allclose(P[i], single, rtol=1e-10, atol=1e-10 * np.abs(single).max())
 
 
+def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch):
+    # Inverse iteration goes on while any camera has not converged; the converged ones keep their
+    # vectors, so their answers (and condition estimates) are bitwise those of a batch in which
+    # every camera stops at the fifth step, from the same compiled program.
+    clean = mc.synthetic.random_rig(jax.random.key(5), n_cameras=8, noise=0.5)
+    noisy = mc.synthetic.random_rig(jax.random.key(6), n_cameras=1, noise=20.0)
+    world, pixels = np.asarray(clean.world), np.asarray(clean.pixels)
+    mixed = np.concatenate([np.asarray(noisy.pixels), pixels[1:]])
+    results = [mc.calibrate(world, batch, max_relative_rms=np.inf) for batch in (pixels, mixed)]
+    for field in ("P", "condition", "status"):
+        a, b = (np.asarray(getattr(r, field))[1:] for r in results)
+        np.testing.assert_array_equal(a, b, err_msg=field)
+
+    # (the noisy camera does take more steps: stopped at the fifth, its vector is another)
+    def eigenvector(pixels):
+        S = mc._dlt._normalised_moments(world, pixels, np.ones(len(world), bool))[0]
+        return np.asarray(mc._dlt._eigen(S[..., None])[0][:, 0])
+
+    late, early = eigenvector(mixed[0]), eigenvector(mixed[1])
+    monkeypatch.setattr(mc._dlt, "_MAX_STEPS", mc._dlt._MIN_STEPS)
+    assert np.abs(eigenvector(mixed[0]) - late).max() > 1e-12
+    np.testing.assert_array_equal(eigenvector(mixed[1]), early)
+
+
 def test_any_leading_axes_and_broadcast_world():
     rig = mc.synthetic.random_rig(jax.random.key(13), n_cameras=6, noise=0.3)
     P = mc.dlt(rig.world, rig.pixels)

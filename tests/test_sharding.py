@@ -108,7 +108,10 @@ def test_calibration_runs_split_by_camera_without_moving_data(two_devices):
         shape = layout["shard_shapes"][0]
         assert shape[0] == 32, (name, layout)
         assert_split(layout, shape, where=name)
-    assert_no_collectives(out["hlo"], where="calibrate")
+    # The one collective: the DLT's inverse iteration goes on past its fifth step while any
+    # camera has not converged, so the devices agree on that once per extra step (one boolean).
+    assert_no_collectives(out["hlo"], allow_all_reduce=1, where="calibrate")
+    assert set(out["hlo"]["all_reduce_shapes"]) <= {"pred[]"}
     # LAPACK calls (CPU) are partitioned along their batch axis: each device decomposes 32.
     for call in out["hlo"]["custom_calls"]:
         assert "[32," in call, call
