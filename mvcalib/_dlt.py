@@ -31,12 +31,15 @@ def _similarity(points, w):
     """Hartley's normalisation `T` (centroid to 0, RMS distance sqrt(d)) over the weighted points.
 
     RMS rather than mean distance: the same conditioning, and a derivative that exists when a
-    point sits on the centroid.
+    point sits on the centroid. One array per coordinate: XLA's CPU backend sums over a short
+    trailing axis slowly.
     """
     d = points.shape[-1]
     n = jnp.maximum(w.sum(), 1.0)
-    c = (w[:, None] * points).sum(0) / n
-    ms = (w * jnp.sum((points - c) ** 2, axis=-1)).sum() / n
+    x = [points[:, k] for k in range(d)]
+    c = [jnp.sum(w * xk) / n for xk in x]
+    ms = jnp.sum(w * sum((xk - ck) ** 2 for xk, ck in zip(x, c))) / n
+    c = jnp.stack(c)
     s = jnp.sqrt(d / jnp.where(ms > 0, ms, 1.0))
     T = jnp.eye(d + 1, dtype=points.dtype) * s
     T = T.at[:d, d].set(-s * c).at[d, d].set(1.0)
