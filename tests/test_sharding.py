@@ -94,8 +94,9 @@ def test_sharded_calibration_equals_the_unsharded_one(two_devices):
     for name in (".report.residuals", ".report.rms", ".report.max", ".report.mean_x"):
         assert compare[name]["absolute"] <= 1e-10, (name, compare[name])  # pixels
     # Compared on the calibrated cameras: a degenerate camera's s_11 is rounding noise, and so
-    # is its condition number s_1 / s_11.
-    assert_close(compare[".condition"], 1e-12, where="condition")
+    # is its condition number s_1 / s_11. s_11^2 is a Rayleigh quotient z^T G z, rounded to
+    # eps ||G||: relative to itself, eps times the condition number squared (1.7e-12 seen).
+    assert_close(compare[".condition"], 1e-11, where="condition")
 
 
 def test_calibration_runs_split_by_camera_without_moving_data(two_devices):
