@@ -155,6 +155,10 @@ def _eigen(S):
         x3 = jnp.stack(_small.cho_solve(LR, list(X[8:] + _times(Su, y1) + _times(Sv, y2))))
         return jnp.concatenate([y1 + _times(Ku, x3), y2 + _times(Kv, x3), x3])
 
+    def away(x, u):
+        """`x` less its component along the unit vectors `u` (one per camera)."""
+        return x - u * jnp.sum(u * x, axis=0)
+
     def iterate(X):
         # v, and beside it z kept orthogonal to v (for the second smallest eigenvalue)
         # ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's
@@ -163,7 +167,7 @@ def _eigen(S):
         v = _small.normalised(Y[:, 0])
         z = Y[:, 1]
         for _ in range(2):
-            z = _small.normalised(z - v * jnp.sum(v * z, axis=0))
+            z = _small.normalised(away(z, v))
         return jnp.stack([v, z], 1)
 
     def change(new, old):
@@ -216,11 +220,10 @@ def _eigen(S):
     # two iterates agree to sqrt(eps), z's Rayleigh quotient a is already exact to rounding, and
     # y would be mostly rounding.
     for _ in range(2):
-        z = _small.normalised(z - v * jnp.sum(v * z, axis=0))
+        z = _small.normalised(away(z, v))
     y = previous
     for _ in range(2):
-        y = y - v * jnp.sum(v * y, axis=0)
-        y = y - z * jnp.sum(z * y, axis=0)
+        y = away(away(y, v), z)
     length = jnp.sqrt(jnp.sum(y * y, axis=0))
     distinct = length > jnp.sqrt(jnp.finfo(S.dtype).eps)
     y = y / jnp.where(distinct, length, 1.0)
