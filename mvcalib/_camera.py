@@ -277,14 +277,60 @@ def _distort(x, y, dist):
     return xd, yd
 
 
+def _distortion_jacobian(x, y, dist):
+    """The 2 x 2 Jacobian `[[a, b], [b, d]]` of `_distort` at `(x, y)` (it is symmetric), in
+    closed form: elementwise work, not a batched LAPACK solve per point (30x faster on CPU)."""
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
+    a = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    return a, b, d
+
+
+def _solve_jacobian(x, y, dist, r):
+    """`J^-1 r` for the distortion Jacobian `J` at `(x, y)` and `r (..., 2)`, by Cramer's rule."""
+    a, b, d = _distortion_jacobian(x, y, dist)
+    det = a * d - b * b
+    return (
+        jnp.stack([d * r[..., 0] - b * r[..., 1], a * r[..., 1] - b * r[..., 0]], -1)
+        / det[..., None]
+    )
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _undistort(target, dist, iterations):
+    """The normalised `xy (..., 2)` with `distort(xy, dist) = target`: Newton's method from the
+    distorted point, a fixed number of steps. Its derivative is that of the exact inverse
+    (implicit differentiation: `J dxy = dtarget - d distort / d dist`), not of the steps, so
+    nested derivatives do not go through the loop."""
+
+    def newton(xy, _):
+        x, y = xy[..., 0], xy[..., 1]
+        return xy - _solve_jacobian(x, y, dist, distort(xy, dist) - target), None
+
+    return jax.lax.scan(newton, target, None, length=iterations)[0]
+
+
+@_undistort.defjvp
+def _undistort_jvp(iterations, primals, tangents):
+    (target, dist), (d_target, d_dist) = primals, tangents
+    xy = _undistort(target, dist, iterations)
+    by_dist = jax.jvp(lambda dist: distort(xy, dist), (dist,), (d_dist,))[1]
+    return xy, _solve_jacobian(xy[..., 0], xy[..., 1], dist, d_target - by_dist)
+
+
 def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     """Remove `camera`'s lens distortion from observed pixels (the inverse of `distort`).
 
     Returns the pixels an ideal pinhole camera with the same `K` would have seen, like
     `cv2.undistortPoints(pixels, K, dist, P=K)`. Solved per point by Newton's method on the
     2 x 2 distortion Jacobian, starting from the distorted point, for a fixed number of
-    iterations (static shapes, differentiable); `pixels` is `(..., N, 2)` and broadcasts
-    against the camera's batch shape.
+    iterations (static shapes); `pixels` is `(..., N, 2)` and broadcasts against the camera's
+    batch shape. Differentiable: the derivative is that of the exact inverse (implicit, from the
+    Jacobian at the answer), not of the iterations.
 
     **Example:**
 
@@ -308,24 +354,7 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     target = jnp.stack([xd, yd], -1)
     dist = jnp.broadcast_to(dist, (*target.shape[:-1], 5))
 
-    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
-
-    def newton(xy, _):
-        # The 2 x 2 Jacobian of `distort` in closed form and its inverse by Cramer's rule:
-        # elementwise work, not a batched LAPACK solve per point (30x faster on CPU).
-        x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
-        a = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-        b = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-        d = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
-        r = distort(xy, dist) - target
-        det = a * d - b * b  # the Jacobian [[a, b], [b, d]] is symmetric
-        step = jnp.stack([d * r[..., 0] - b * r[..., 1], a * r[..., 1] - b * r[..., 0]], -1)
-        return xy - step / det[..., None], None
-
-    xy, _ = jax.lax.scan(newton, target, None, length=iterations)
+    xy = _undistort(target, dist, iterations)
     u = camera.alpha_u[..., None] * xy[..., 0] + camera.skew[..., None] * xy[..., 1]
     v = camera.alpha_v[..., None] * xy[..., 1] + camera.v0[..., None]
     return jnp.stack([u + camera.u0[..., None], v], -1)

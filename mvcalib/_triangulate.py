@@ -7,6 +7,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
@@ -38,6 +39,13 @@ class Triangulation(eqx.Module):
 
 # The distinct entries (i, j), i <= j, of a symmetric 4 x 4 matrix.
 _PAIRS = [(i, j) for i in range(4) for j in range(i, 4)]
+# `_SYM @ vec(O)` is the distinct entries of `O + O^T` for a 4 x 4 `O`: one small product, where
+# a stack of the 10 entries, each two slices, grows tenfold in nested derivatives (`jax.grad` of
+# `jax.jacfwd` of a point: 5k of its program's 15k lines).
+_SYM = np.zeros((len(_PAIRS), 16))
+_SYM[np.arange(len(_PAIRS)), [4 * i + j for i, j in _PAIRS]] += 1.0
+_SYM[np.arange(len(_PAIRS)), [4 * j + i for i, j in _PAIRS]] += 1.0
+_FULL = np.argmax(_SYM != 0, 0)  # entry (i, j) of the 4 x 4 matrix is _FULL[4 i + j]
 
 
 def _normal_coefficients(P):
@@ -52,20 +60,21 @@ def _normal_coefficients(P):
     """
     P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]  # (C, 4)
 
-    def sym(a, b):  # the entries of a b^T + b a^T, (10, C)
-        return jnp.stack([a[:, i] * b[:, j] + b[:, i] * a[:, j] for i, j in _PAIRS])
+    def sym(a, b):  # the entries of a b^T + b a^T, (10, C), as one product with a constant
+        return jnp.asarray(_SYM, a.dtype) @ (a[:, :, None] * b[:, None, :]).reshape(-1, 16).T
 
     return jnp.stack([sym(P3, P3) / 2, -sym(P3, P1), -sym(P3, P2), (sym(P1, P1) + sym(P2, P2)) / 2])
 
 
 def _congruence(G, s, d):
-    """`T^T G T` for `T = [[s I, d], [0, 1]]`, entry by entry (`G` as rows of entries): the normal
-    matrix of the point `X = s X' + d` in terms of `X'`."""
-    H = [[s * G[a][b] for b in range(3)] + [G[a][3] + sum(G[a][b] * d[b] for b in range(3))]
-         for a in range(4)]  # fmt: skip
-    return [[s * H[a][c] for c in range(4)] for a in range(3)] + [
-        [H[3][c] + sum(d[b] * H[b][c] for b in range(3)) for c in range(4)]
-    ]
+    """`T^T G T` for `T = [[s I, d], [0, 1]]` and `G (4, 4, *batch)`: the normal matrix of the
+    point `X = s X' + d` in terms of `X'`. With `G = [[A, b], [b^T, c]]` it is
+    `[[s^2 A, s e], [s e^T, d^T (e + b) + c]]`, `e = A d + b`."""
+    A, b, c = G[:3, :3], G[:3, 3], G[3, 3]
+    e = jnp.sum(A * d, 1) + b  # (3, *batch)
+    corner = jnp.sum(d * (e + b), 0) + c
+    top = jnp.concatenate([s * s * A, (s * e)[:, None]], 1)
+    return jnp.concatenate([top, jnp.concatenate([s * e, corner[None]])[None]])
 
 
 _STEPS = 6
@@ -209,10 +218,8 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     n = jnp.ones_like(w[:, 0]) @ w  # (a sum over the leading axis is slow on a CPU)
     B = _normal_coefficients(P)
     features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
-    entries = jnp.concatenate(B, -1) @ features
-    G = [[None] * 4 for _ in range(4)]
-    for k, (i, j) in enumerate(_PAIRS):
-        G[i][j] = G[j][i] = entries[k]
+    entries = jnp.concatenate(B, -1) @ features  # (10, N)
+    G = entries[_FULL].reshape(4, 4, -1)
     own = (centres - middle) / spread
     d = (own.T @ w) / jnp.maximum(n, 1.0)  # (3, N): the point's frame in the rig's
     ms = (jnp.sum(own * own, -1) @ w) / jnp.maximum(n, 1.0) - jnp.sum(d * d, 0)
@@ -221,9 +228,8 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok): an
     # all-zero matrix would have no Cholesky factor, and repeated eigenvalues, where the null
     # vector's derivative (which needs the gap to the next eigenvalue) is infinite.
-    G = [[jnp.where(n >= 2, G[i][j], float(4 - i) if i == j else 0.0) for j in range(4)]
-         for i in range(4)]  # fmt: skip
-    v = _null_vector(jnp.stack([jnp.stack(row) for row in G]))  # (4, N)
+    stand_in = jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=x.dtype))[..., None]
+    v = _null_vector(jnp.where(n >= 2, G, stand_in))  # (4, N)
     X = middle + spread * (d + s * v[:3] / v[3]).T  # (N, 3)
     if refine:
         X = jax.vmap(_refine_point, in_axes=(None, 0, 1, 1, None))(
