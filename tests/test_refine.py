@@ -232,6 +232,9 @@ def rig48():
     return seed, world, pixels, mask
 
 
+# Equal to 1e-12 holds for XLA's default CPU code generation, which rounds a camera's steps
+# alike in any batch; the older emitters do not (8e-10 apart), so this runs with the default.
+@pytest.mark.default_codegen
 def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
     from mvcalib import _refine
 

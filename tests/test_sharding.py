@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import default_codegen_env
 from jax.sharding import Mesh, NamedSharding
 
 import mvcalib as mc
@@ -35,11 +36,14 @@ def two_devices():
     # Backend optimisation off: the split is decided on the HLO, before LLVM, and LLVM's
     # optimisation of the unrolled DLT is most of the compile time (62 -> 35 s CPU for the ten
     # programs). Both sides of every comparison are compiled alike.
-    flags = os.environ.get("XLA_FLAGS", "") + (
+    # The comparisons are to the last bits: compiled as users' programs are (XLA's default CPU
+    # emitters, not the older ones the other tests use).
+    env = default_codegen_env()
+    flags = env["XLA_FLAGS"] + (
         " --xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0"
     )
     env = dict(
-        os.environ,
+        env,
         XLA_FLAGS=flags.strip(),
         JAX_ENABLE_X64="1",
         JAX_PLATFORMS="cpu",

@@ -136,6 +136,9 @@ def test_diagnostics_flag_what_cannot_be_trusted():
     assert (np.asarray(narrow.angle) < 1).all() and not np.asarray(narrow.ok).any()
 
 
+# The gradient at the optimum is checked to 1e-6, within a factor of a few of where rounding
+# decides the solver's last step (1.2e-6 with XLA's older CPU emitters): run as users compile.
+@pytest.mark.default_codegen
 def test_refinement_minimises_reprojection_error_with_distortion():
     cameras, world = ring(4, seed=7, distortion=True)
     pixels = cameras.project(world)
