@@ -67,14 +67,13 @@ def _normal_coefficients(P):
 
 
 def _congruence(G, s, d):
-    """`T^T G T` for `T = [[s I, d], [0, 1]]` and `G (4, 4, *batch)`: the normal matrix of the
-    point `X = s X' + d` in terms of `X'`. With `G = [[A, b], [b^T, c]]` it is
-    `[[s^2 A, s e], [s e^T, d^T (e + b) + c]]`, `e = A d + b`."""
-    A, b, c = G[:3, :3], G[:3, 3], G[3, 3]
-    e = jnp.sum(A * d, 1) + b  # (3, *batch)
-    corner = jnp.sum(d * (e + b), 0) + c
-    top = jnp.concatenate([s * s * A, (s * e)[:, None]], 1)
-    return jnp.concatenate([top, jnp.concatenate([s * e, corner[None]])[None]])
+    """`T^T G T` for `T = [[s I, d], [0, 1]]`, entry by entry (`G` as rows of entries): the normal
+    matrix of the point `X = s X' + d` in terms of `X'`."""
+    H = [[s * G[a][b] for b in range(3)] + [G[a][3] + sum(G[a][b] * d[b] for b in range(3))]
+         for a in range(4)]  # fmt: skip
+    return [[s * H[a][c] for c in range(4)] for a in range(3)] + [
+        [H[3][c] + sum(d[b] * H[b][c] for b in range(3)) for c in range(4)]
+    ]
 
 
 _STEPS = 6
@@ -219,7 +218,7 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     B = _normal_coefficients(P)
     features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
     entries = jnp.concatenate(B, -1) @ features  # (10, N)
-    G = entries[_FULL].reshape(4, 4, -1)
+    G = [[entries[_FULL[4 * i + j]] for j in range(4)] for i in range(4)]
     own = (centres - middle) / spread
     d = (own.T @ w) / jnp.maximum(n, 1.0)  # (3, N): the point's frame in the rig's
     ms = (jnp.sum(own * own, -1) @ w) / jnp.maximum(n, 1.0) - jnp.sum(d * d, 0)
@@ -228,8 +227,9 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     # A point seen by fewer than two views gets a harmless stand-in (it is flagged not ok): an
     # all-zero matrix would have no Cholesky factor, and repeated eigenvalues, where the null
     # vector's derivative (which needs the gap to the next eigenvalue) is infinite.
-    stand_in = jnp.diag(jnp.arange(4.0, 0.0, -1.0, dtype=x.dtype))[..., None]
-    v = _null_vector(jnp.where(n >= 2, G, stand_in))  # (4, N)
+    G = [[jnp.where(n >= 2, G[i][j], float(4 - i) if i == j else 0.0) for j in range(4)]
+         for i in range(4)]  # fmt: skip
+    v = _null_vector(jnp.stack([jnp.stack(row) for row in G]))  # (4, N)
     X = middle + spread * (d + s * v[:3] / v[3]).T  # (N, 3)
     if refine:
         X = jax.vmap(_refine_point, in_axes=(None, 0, 1, 1, None))(
