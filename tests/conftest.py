@@ -40,7 +40,11 @@ def _ask_for_legacy_emitters():
     flags = " ".join([*_xla_flags(), LEGACY_EMITTERS])
     probe = [sys.executable, "-c", "import jax; jax.devices()"]
     env = {**os.environ, "XLA_FLAGS": flags}
-    if subprocess.run(probe, env=env, capture_output=True, timeout=120).returncode == 0:
+    try:
+        known = subprocess.run(probe, env=env, capture_output=True, timeout=120).returncode == 0
+    except subprocess.TimeoutExpired:  # a machine that slow gets the default, not an error
+        known = False
+    if known:
         os.environ["XLA_FLAGS"] = flags
 
 
