@@ -45,7 +45,6 @@ _PAIRS = [(i, j) for i in range(4) for j in range(i, 4)]
 _SYM = np.zeros((len(_PAIRS), 16))
 _SYM[np.arange(len(_PAIRS)), [4 * i + j for i, j in _PAIRS]] += 1.0
 _SYM[np.arange(len(_PAIRS)), [4 * j + i for i, j in _PAIRS]] += 1.0
-_FULL = np.argmax(_SYM != 0, 0)  # entry (i, j) of the 4 x 4 matrix is _FULL[4 i + j]
 
 
 def _normal_coefficients(P):
@@ -217,8 +216,10 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     n = jnp.ones_like(w[:, 0]) @ w  # (a sum over the leading axis is slow on a CPU)
     B = _normal_coefficients(P)
     features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
-    entries = jnp.concatenate(B, -1) @ features  # (10, N)
-    G = [[entries[_FULL[4 * i + j]] for j in range(4)] for i in range(4)]
+    entries = jnp.concatenate(B, -1) @ features
+    G = [[None] * 4 for _ in range(4)]
+    for k, (i, j) in enumerate(_PAIRS):
+        G[i][j] = G[j][i] = entries[k]
     own = (centres - middle) / spread
     d = (own.T @ w) / jnp.maximum(n, 1.0)  # (3, N): the point's frame in the rig's
     ms = (jnp.sum(own * own, -1) @ w) / jnp.maximum(n, 1.0) - jnp.sum(d * d, 0)

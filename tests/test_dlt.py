@@ -134,9 +134,8 @@ def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch)
     # Inverse iteration goes on while any camera has not converged; the converged ones keep their
     # vectors, so their answers (and condition estimates) are bitwise those of a batch in which
     # every camera stops at the fifth step, from the same compiled program.
-    clean = mc.synthetic.random_rig(
-        jax.random.key(5), n_cameras=40, noise=0.5
-    )  # 40 x 19: the program of the test above
+    # 40 x 19: the program of the test above
+    clean = mc.synthetic.random_rig(jax.random.key(5), n_cameras=40, noise=0.5)
     noisy = mc.synthetic.random_rig(jax.random.key(6), n_cameras=1, noise=20.0)
     world, pixels = np.asarray(clean.world), np.asarray(clean.pixels)
     mixed = np.concatenate([np.asarray(noisy.pixels), pixels[1:]])
