@@ -12,12 +12,13 @@ target), so squaring L costs no accuracy worth the name: the cameras equal the S
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from . import _small, _validate
+from . import _sharding, _small, _validate
 from ._status import Status
 
 # The largest reprojection RMS of a camera, as a fraction of its pixels' spread, that is still
@@ -396,11 +397,39 @@ def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relat
     return P, status, condition, mirrored
 
 
+# The most cameras solved side by side on one CPU device (`_sharding.cpu_chunk`).
+CHUNK = 4096
+
+
 @functools.partial(jax.jit, static_argnames=("rcond", "max_relative_rms"))
 def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_RELATIVE_RMS):
-    """The DLT of every camera for inputs that passed `_validate.correspondences`: per camera the
-    moments, then the eigenvectors of all cameras at once with the cameras as the last axis, then
-    per camera the de-normalised P and its checks."""
+    """The DLT of every camera for inputs that passed `_validate.correspondences`, by `_solve`.
+
+    On one CPU device, rigs of more than `CHUNK` cameras go through `_solve` in a loop over equal
+    chunks, whose arrays stay in cache: at 65,536 cameras of 19 points 3.5-3.9 µs per camera
+    against 12.0-12.2 in one batch (at 4096, chunks of 64 to 2048 were no faster than one batch).
+    Each camera's answer does not depend on the others in its batch (`_eigen`), so chunks change
+    it by rounding at most (~1e-15 of P).
+    """
+    solve = functools.partial(_solve, rcond=rcond, max_relative_rms=max_relative_rms)
+    batch = jnp.broadcast_shapes(world.shape[:-2], pixels.shape[:-2], mask.shape[:-1])
+    chunk = _sharding.cpu_chunk(math.prod(batch), CHUNK)
+    if chunk is None:
+        return solve(world, pixels, mask)
+    if world.ndim == 2:  # one target seen by every camera stays one
+        run, inputs = functools.partial(solve, world), (pixels, mask)
+    else:
+        run, inputs = solve, (world, pixels, mask)
+    # every batched input flattened to (cameras, ...)
+    tails = [x.shape[x.ndim - (1 if x is mask else 2) :] for x in inputs]
+    inputs = [jnp.broadcast_to(x, batch + t).reshape((-1,) + t) for x, t in zip(inputs, tails)]
+    out = _sharding.chunked_map(run, tuple(inputs), chunk)
+    return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), out)
+
+
+def _solve(world, pixels, mask, rcond, max_relative_rms):
+    """Per camera the moments, then the eigenvectors of all cameras at once with the cameras as
+    the last axis, then per camera the de-normalised P and its checks."""
     inputs = (world, pixels, mask)
     S, *normalisation = jnp.vectorize(
         _normalised_moments, signature="(n,3),(n,2),(n)->(4,10),(),(),(3),(),(2)"

@@ -159,6 +159,30 @@ def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch)
     np.testing.assert_array_equal(stopped[:, 1], v[:, 1])
 
 
+def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
+    # On one CPU device, rigs of more than `CHUNK` cameras are solved in equal chunks (padded with
+    # copies of the last camera): every camera's answer is its one-batch answer, failures too.
+    rig = mc.synthetic.random_rig(jax.random.key(21), n_cameras=50, noise=0.5)
+    pixels, mask = np.asarray(rig.pixels).copy(), np.asarray(rig.mask).copy()
+    mask[3, :14] = False  # 5 points left: TOO_FEW_POINTS
+    pixels[7, 2] += 300.0  # a wild pixel: POOR_FIT
+    mask[49, 4:] = False  # the camera the padding copies: TOO_FEW_POINTS
+
+    def solve(world, chunk):
+        monkeypatch.setattr(mc._dlt, "CHUNK", chunk)
+        mc._dlt.solve_validated.clear_cache()  # traced anew with this `CHUNK`
+        return [np.asarray(x) for x in mc._dlt.solve(world, pixels, mask)]
+
+    assert mc._sharding.cpu_chunk(50, 16) == 16  # the path under test: four chunks of 13
+    for world in (rig.world, np.broadcast_to(rig.world, (50, 19, 3))):  # shared, per camera
+        whole, chunked = solve(world, 10**9), solve(world, 16)
+        np.testing.assert_array_equal(chunked[1], whole[1])  # status
+        assert {3, 7, 49} <= set(np.flatnonzero(whole[1] != mc.Status.OK))
+        np.testing.assert_allclose(chunked[0], whole[0], rtol=1e-12, atol=0)  # P, NaN alike
+        np.testing.assert_allclose(chunked[2], whole[2], rtol=1e-12)  # condition
+        np.testing.assert_array_equal(chunked[3], whole[3])  # mirrored
+
+
 def test_any_leading_axes_and_broadcast_world():
     rig = mc.synthetic.random_rig(jax.random.key(13), n_cameras=6, noise=0.3)
     P = mc.dlt(rig.world, rig.pixels)
