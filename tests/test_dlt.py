@@ -108,15 +108,18 @@ def test_inverse_iteration_equals_lapack_svd(noise, points):
 
 
 def test_masked_median_equals_numpy_median_with_ties_and_hidden_points():
-    # the ranking (N <= 64) and sorting branches of the POOR_FIT check's median
+    # the counting (N <= 32) and sorting branches of the POOR_FIT check's median; sorting orders
+    # the floats' bits as integers: negative values, signed zeros and large exponents included
     rng = np.random.default_rng(0)
-    for n in (7, 19, 100):
-        x = np.round(3 * rng.standard_normal((500, n)))  # many ties
+    for n, dtype in [(7, np.float64), (19, np.float64), (33, np.float64), (100, np.float32)]:
+        x = np.round(3 * rng.standard_normal((500, n)))  # many ties, -0.0 among them
+        x[250:] = rng.standard_normal((250, n)) * 10.0 ** rng.integers(-30, 30, (250, 1))
+        x = x.astype(dtype)
         mask = rng.uniform(size=(500, n)) > 0.3
         mask[0] = False
         ours = np.asarray(mc._dlt._masked_median(jnp.asarray(x), jnp.asarray(mask)))
         ref = [np.median(row[keep]) if keep.any() else np.nan for row, keep in zip(x, mask)]
-        np.testing.assert_array_equal(ours, ref)
+        np.testing.assert_array_equal(ours, np.asarray(ref, dtype), err_msg=f"{n} {dtype}")
 
 
 @pytest.mark.parametrize("C", [1, 7, 64, 4096])
@@ -160,8 +163,11 @@ def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch)
 
 
 def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
-    # On one CPU device, rigs of more than `CHUNK` cameras are solved in equal chunks (padded with
-    # copies of the last camera): every camera's answer is its one-batch answer, failures too.
+    # On one CPU device, large rigs are solved in equal chunks of cameras (padded with copies of
+    # the last camera): every camera's answer is its one-batch answer, failures too.
+    assert mc._dlt._chunk_size(4096, 19) is None  # one batch
+    assert mc._dlt._chunk_size(65536, 19) == 4311  # 16 chunks of 4096
+    assert mc._dlt._chunk_size(4096, 2000) == 64  # the least chunk
     rig = mc.synthetic.random_rig(jax.random.key(21), n_cameras=50, noise=0.5)
     pixels, mask = np.asarray(rig.pixels).copy(), np.asarray(rig.mask).copy()
     mask[3, :14] = False  # 5 points left: TOO_FEW_POINTS
@@ -169,13 +175,12 @@ def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
     mask[49, 4:] = False  # the camera the padding copies: TOO_FEW_POINTS
 
     def solve(world, chunk):
-        monkeypatch.setattr(mc._dlt, "CHUNK", chunk)
-        mc._dlt.solve_validated.clear_cache()  # traced anew with this `CHUNK`
+        monkeypatch.setattr(mc._dlt, "_chunk_size", lambda n_cameras, n_points: chunk)
+        mc._dlt.solve_validated.clear_cache()  # traced anew with this chunk
         return [np.asarray(x) for x in mc._dlt.solve(world, pixels, mask)]
 
-    assert mc._sharding.cpu_chunk(50, 16) == 16  # the path under test: four chunks of 13
     for world in (rig.world, np.broadcast_to(rig.world, (50, 19, 3))):  # shared, per camera
-        whole, chunked = solve(world, 10**9), solve(world, 16)
+        whole, chunked = solve(world, None), solve(world, 16)  # four chunks of 13
         np.testing.assert_array_equal(chunked[1], whole[1])  # status
         assert {3, 7, 49} <= set(np.flatnonzero(whole[1] != mc.Status.OK))
         np.testing.assert_allclose(chunked[0], whole[0], rtol=1e-12, atol=0)  # P, NaN alike
