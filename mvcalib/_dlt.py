@@ -436,14 +436,15 @@ def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_REL
     chunk = _chunk_size(math.prod(batch), pixels.shape[-2])
     if chunk is None:
         return solve(world, pixels, mask)
+    # every batched input flattened to (cameras, ...), as `_refine._refine_batched` does
+    flat = lambda x, tail: jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)  # noqa: E731
+    n = pixels.shape[-2]
+    inputs = (flat(pixels, (n, 2)), flat(mask, (n,)))
     if world.ndim == 2:  # one target seen by every camera stays one
-        run, inputs = functools.partial(solve, world), (pixels, mask)
+        run = functools.partial(solve, world)
     else:
-        run, inputs = solve, (world, pixels, mask)
-    # every batched input flattened to (cameras, ...)
-    tails = [x.shape[x.ndim - (1 if x is mask else 2) :] for x in inputs]
-    inputs = [jnp.broadcast_to(x, batch + t).reshape((-1,) + t) for x, t in zip(inputs, tails)]
-    out = _sharding.chunked_map(run, tuple(inputs), chunk)
+        run, inputs = solve, (flat(world, (n, 3)), *inputs)
+    out = _sharding.chunked_map(run, inputs, chunk)
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), out)
 
 
