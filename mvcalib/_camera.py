@@ -335,11 +335,11 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     **Example:**
 
     ```python
-    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> import jax.numpy as jnp, numpy as np, mvcalib as mc
     >>> cam = mc.Camera(800.0, 800.0, 320.0, 240.0, jnp.eye(3), jnp.array([0.0, 0.0, 4.0]),
     ...                 dist=jnp.array([-0.2, 0.05, 0.0, 0.0, 0.0]))
     >>> world = jnp.array([[1.0, 0.5, 0.0]])
-    >>> mc.undistort_points(cam, cam.project(world)).round(3).tolist()
+    >>> np.round(np.asarray(mc.undistort_points(cam, cam.project(world))), 3).tolist()
     [[520.0, 340.0]]
 
     ```

@@ -221,7 +221,7 @@ def ellipse_centres(
     >>> target = mc.targets.box_corner()
     >>> ellipse = mc.synthetic.ellipse_centres(camera, target)
     >>> bias = ellipse - mc.synthetic.true_centres(camera, target)
-    >>> bool(0 < np.linalg.norm(bias, axis=1).max() < 1)
+    >>> bool(0.1 < np.linalg.norm(bias, axis=1).max() < 2)  # a pixel or so
     True
 
     ```
