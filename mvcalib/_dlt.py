@@ -151,14 +151,18 @@ def _eigen(S):
     def solve(X):
         """`G^-1 X` for `X (12, m, *batch)`."""
         m = X.shape[1]
-        Y = jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([X[:4], X[4:8]], 1))))
+        Y = _small.materialised(
+            jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([X[:4], X[4:8]], 1))))
+        )
         y1, y2 = Y[:, :m], Y[:, m:]
-        x3 = jnp.stack(_small.cho_solve(LR, list(X[8:] + _times(Su, y1) + _times(Sv, y2))))
+        x3 = _small.materialised(
+            jnp.stack(_small.cho_solve(LR, list(X[8:] + _times(Su, y1) + _times(Sv, y2))))
+        )
         return jnp.concatenate([y1 + _times(Ku, x3), y2 + _times(Kv, x3), x3])
 
     def away(x, u):
         """`x` less its component along the unit vectors `u` (one per camera)."""
-        return x - u * jnp.sum(u * x, axis=0)
+        return x - u * _small.leading_sum(u * x)
 
     def iterate(X):
         # v, and beside it z kept orthogonal to v (for the second smallest eigenvalue)
@@ -225,11 +229,11 @@ def _eigen(S):
     y = previous
     for _ in range(2):
         y = away(away(y, v), z)
-    length = jnp.sqrt(jnp.sum(y * y, axis=0))
+    length = jnp.sqrt(_small.leading_sum(y * y))
     distinct = length > jnp.sqrt(jnp.finfo(S.dtype).eps)
     y = y / jnp.where(distinct, length, 1.0)
     G_z, G_y = G_times(z), G_times(y)
-    a, b, c = jnp.sum(z * G_z, axis=0), jnp.sum(z * G_y, axis=0), jnp.sum(y * G_y, axis=0)
+    a, b, c = (_small.leading_sum(p * q) for p, q in ((z, G_z), (z, G_y), (y, G_y)))
     half = 0.5 * (c - a)
     root = jnp.sqrt(half * half + b * b)
     usable = distinct & (root + half > 0)

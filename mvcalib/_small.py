@@ -8,6 +8,7 @@ batch and XLA fuses the whole solve into a few elementwise loops.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -45,7 +46,20 @@ def normalised(x):
     if isinstance(x, list):
         length = jnp.sqrt(sum(xi * xi for xi in x))
         return [xi / length for xi in x]
-    return x / jnp.sqrt(jnp.sum(x * x, axis=0))
+    return x / jnp.sqrt(leading_sum(x * x))
+
+
+def leading_sum(x):
+    """The sum of `x (n, *batch)` over its leading axis, as a product with a row of ones.
+
+    XLA's CPU backend fuses a chain of reductions and the elementwise work between them into one
+    kernel (XNNPACK's, in jax 0.10) that runs several times slower than its parts: normalising
+    v and keeping z orthogonal to it took ~0.1 µs per camera and step. A matrix-vector product
+    ends every fusion, and the parts run as fast elementwise loops.
+    """
+    ones = jnp.ones((1, x.shape[0]), x.dtype)
+    total = jnp.matmul(ones, x.reshape(x.shape[0], -1), precision=jax.lax.Precision.HIGHEST)
+    return total.reshape(x.shape[1:])
 
 
 def eigenvector_tangent(G, v, dG_v):
@@ -64,3 +78,13 @@ def eigenvector_tangent(G, v, dG_v):
     c = jnp.trace(G) / n + 1.0  # any c > 0; this one is of G's scale
     B = G - lam * jnp.eye(n, dtype=G.dtype) + c * jnp.outer(v, v)
     return -jnp.linalg.solve(B, dG_v - v * (v @ dG_v))
+
+
+def materialised(x):
+    """`x (n, *batch)`, through a product with the identity: XLA computes it once, into memory,
+    instead of fusing its computation into every consumer, where each entry of the consumer
+    recomputes the whole chain of a triangular solve. In the DLT's inverse iteration this took a
+    step's solves from ~0.9 to ~0.35 ms for 4096 cameras."""
+    eye = jnp.eye(x.shape[0], dtype=x.dtype)
+    y = jnp.matmul(eye, x.reshape(x.shape[0], -1), precision=jax.lax.Precision.HIGHEST)
+    return y.reshape(x.shape)
