@@ -83,7 +83,8 @@ def eigenvector_tangent(G, v, dG_v):
 def materialised(x):
     """`x (n, *batch)`, through a product with the identity: XLA computes it once, into memory,
     instead of fusing its computation into every consumer, where each entry of the consumer
-    recomputes the whole chain of a triangular solve. In the DLT's inverse iteration this took a
-    step's solves from ~0.9 to ~0.35 ms for 4096 cameras."""
+    recomputes the whole chain of a triangular solve (fusions of 115-143 operations in the DLT's
+    inverse iteration). With `leading_sum`, the DLT + decomposition of 4096 cameras went from 4.21
+    to 3.32 µs per camera."""
     eye = jnp.eye(x.shape[0], dtype=x.dtype)
     return jnp.tensordot(eye, x, axes=1, precision=jax.lax.Precision.HIGHEST)
