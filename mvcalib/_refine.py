@@ -105,11 +105,15 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     Converged when an accepted step is shorter than `rtol` standard errors of the parameters,
     `dy^T J^T J dy <= rtol^2 cost / (m - n)` with `m` residuals and `n` parameters (noise-scaled,
     so it means the same for every camera), or than `atol` in every entry of `y`; or when a trial
-    changes the cost by no more than its rounding, so that no comparison can tell a better point
-    (an exact fit; with noise, ~1e-7 standard errors from the optimum). `y` and the residuals
-    may be any pytrees of arrays; the Jacobian comes from `jax.jacfwd`, or, for a 1-D `y`, from
-    `options={"jacobian": jac}` with `jac(y, args)` the `(residuals, len(y))` matrix of the
-    flattened residuals' derivatives (as SciPy's `jac=`).
+    is rejected although the model predicted a decrease of the cost below that tolerance
+    `rtol^2 cost / (m - n)` and the cost changed by less (MINPACK's test of the relative
+    reduction): the trial lost to rounding, which scales with the terms of the residuals (pixel
+    coordinates of ~1000) rather than with the cost, and raising the damping until a trial wins
+    took up to 8 more steps a camera; or when a trial changes the cost by no more than its
+    rounding (an exact fit; with noise, ~1e-7 standard errors from the optimum). `y` and the
+    residuals may be any pytrees of arrays; the Jacobian comes from `jax.jacfwd`, or, for a 1-D
+    `y`, from `options={"jacobian": jac}` with `jac(y, args)` the `(residuals, len(y))` matrix of
+    the flattened residuals' derivatives (as SciPy's `jac=`).
 
     **Example:**
 
@@ -195,9 +199,12 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         S_new = jnp.where(jnp.abs(ys) > _TINY, S_new, sizing * S)
 
         dof = jnp.maximum(r.shape[0] - y.shape[0], 1)
-        short = (dy @ H @ dy <= self.rtol**2 * cost_new / dof) | (self.norm(dy) <= self.atol)
+        tolerance = self.rtol**2 * cost_new / dof
+        short = (dy @ H @ dy <= tolerance) | (self.norm(dy) <= self.atol)
         exact = ~accept & (jnp.abs(cost_new - cost) <= 64 * jnp.finfo(y.dtype).eps * cost)
-        done = (accept & short) | exact | (cost == 0)
+        predicted = jnp.where(state.augmented, augmented, gauss_newton)
+        stalled = ~accept & (jnp.maximum(predicted, jnp.abs(actual)) <= tolerance)
+        done = (accept & short) | exact | stalled | (cost == 0)
         damping = jnp.where(
             accept,
             jnp.where(good, jnp.maximum(0.1 * state.damping, _MIN_DAMPING), state.damping),

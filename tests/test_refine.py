@@ -224,6 +224,31 @@ def test_secant_lm_matches_scipy_on_a_pytree_curve_fit():
     assert int(sol.result._value) == 0 and int(sol.stats["num_steps"]) < 30  # noqa: SLF001
 
 
+def test_secant_lm_stops_when_a_trial_loses_only_to_rounding():
+    """Linear least squares whose residuals are differences of pixel-sized (~1000) terms: the
+    first step lands on the optimum, after which a trial's cost differs from it by rounding of
+    those terms (~1e-13 each, more than the cost's own ~1e-16). The solver must take that as
+    converged rather than raise the damping until a trial wins (5-9 steps, where 3 do)."""
+    import optimistix as optx
+
+    rng = np.random.default_rng(0)
+    fn = lambda y, args: (args[1] + args[0] @ y) - args[2]  # noqa: E731
+    steps = []
+    for _ in range(20):
+        A = rng.standard_normal((200, 14)) * np.logspace(0, 3, 14)
+        offset = rng.uniform(500.0, 1000.0, 200)
+        b = offset + A @ rng.standard_normal(14) + 0.3 * rng.standard_normal(200)
+        args = (jnp.asarray(A), jnp.asarray(offset), jnp.asarray(b))
+        sol = optx.least_squares(fn, mc.SecantLM(), jnp.zeros(14), args, throw=False)
+        x, *_ = np.linalg.lstsq(A, b - offset, rcond=None)
+        r = b - offset - A @ x
+        std = np.sqrt(np.diag(np.linalg.inv(A.T @ A)) * (r @ r) / (200 - 14))
+        assert int(sol.result._value) == 0  # noqa: SLF001
+        assert np.all(np.abs(np.asarray(sol.value) - x) <= 1e-4 * std)
+        steps.append(int(sol.stats["num_steps"]))
+    assert max(steps) <= 4, steps
+
+
 @pytest.fixture(scope="module")
 def rig48():
     """48 cameras: more than one chunk of `CHUNK` on a CPU (two of 24)."""
