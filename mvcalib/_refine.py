@@ -234,6 +234,29 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
+def _spd_inverse(M):
+    """The inverse of a symmetric positive definite `M (n, n)`, by Gauss–Jordan sweeps without
+    pivoting (which a definite matrix does not need): a loop of `n` rank-one updates, not LAPACK.
+
+    Under `vmap` jaxlib runs a batch of LAPACK factorisations through its CPU thread pool, and a
+    rig of 256 cameras split over two host devices deadlocked there (`docs/scaling.md`): each
+    device's program held one of the two workers and waited for sub-tasks queued behind the
+    other's.
+    """
+    n = M.shape[-1]
+
+    def sweep(k, A):  # Goodnight's sweep on row and column k; after all n, A = -M^-1
+        e = jax.nn.one_hot(k, n, dtype=A.dtype)
+        column = A @ e
+        pivot = column @ e
+        rest = column - pivot * e
+        keep = 1.0 - e  # row and column k are replaced, not left to cancel
+        A = (A - jnp.outer(column, column) / pivot) * jnp.outer(keep, keep)
+        return A + (jnp.outer(e, rest) + jnp.outer(rest, e) - jnp.outer(e, e)) / pivot
+
+    return -jax.lax.fori_loop(0, n, sweep, M)
+
+
 def _tree_fn(fn, unravel):
     """`fn` of a flat vector, for a `fn` of the pytree that `unravel` rebuilds."""
     return lambda y_flat, args: fn(unravel(y_flat), args)
@@ -451,7 +474,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     n_obs = 2 * jnp.sum(mask)
     dof = jnp.maximum(n_obs - len(free), 1)
     sigma2 = jnp.sum(r * r) / dof
-    cov = sigma2 * jnp.linalg.inv(J.T @ J)
+    cov = sigma2 * _spd_inverse(J.T @ J)
 
     rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
     residual_length = jnp.linalg.norm(
