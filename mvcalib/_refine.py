@@ -174,8 +174,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         diag = jnp.diagonal(H)
         diag = jnp.maximum(diag, jnp.finfo(y.dtype).eps * jnp.max(diag))
         A = jnp.where(state.augmented, H + S, H)
-        factor = jnp.linalg.cholesky(A + state.damping * jnp.diag(diag))
-        dy = -jax.scipy.linalg.cho_solve((factor, True), g)
+        dy = -_step_solve(A + state.damping * jnp.diag(diag), g)
         r_new, J_new, aux_new = self._evaluate(fn, y + dy, args, options)
         cost_new = r_new @ r_new
         cost_new = jnp.where(jnp.isnan(cost_new), jnp.inf, cost_new)  # not definite, or NaN
@@ -234,27 +233,39 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
-def _spd_inverse(M):
-    """The inverse of a symmetric positive definite `M (n, n)`, by Gauss–Jordan sweeps without
-    pivoting (which a definite matrix does not need): a loop of `n` rank-one updates, not LAPACK.
+def _spd_solve(M, B):
+    """`M^-1 B` for a symmetric `M (n, n)` and `B (n, m)`; NaN unless `M` is positive definite.
 
-    Under `vmap` jaxlib runs a batch of LAPACK factorisations through its CPU thread pool, and a
-    rig of 256 cameras split over two host devices deadlocked there (`docs/scaling.md`): each
-    device's program held one of the two workers and waited for sub-tasks queued behind the
-    other's.
+    Gauss–Jordan elimination without pivoting (which a definite matrix does not need), a loop of
+    `n` rank-one updates of `[M | B]`, not LAPACK: under `vmap` jaxlib runs a batch of LAPACK
+    factorisations through XLA's CPU thread pool, and a rig split over host devices deadlocked
+    there (`docs/scaling.md`): each device's program held a worker and waited for sub-tasks
+    queued behind the others'. `M` is definite where every pivot (the `D` of its `L D L^T`) is
+    positive.
     """
     n = M.shape[-1]
 
-    def sweep(k, A):  # Goodnight's sweep on row and column k; after all n, A = -M^-1
+    def eliminate(k, carry):
+        A, definite = carry
         e = jax.nn.one_hot(k, n, dtype=A.dtype)
-        column = A @ e
-        pivot = column @ e
-        rest = column - pivot * e
-        keep = 1.0 - e  # row and column k are replaced, not left to cancel
-        A = (A - jnp.outer(column, column) / pivot) * jnp.outer(keep, keep)
-        return A + (jnp.outer(e, rest) + jnp.outer(rest, e) - jnp.outer(e, e)) / pivot
+        row = e @ A
+        pivot = row[:n] @ e
+        row = row / pivot
+        A = jnp.where(e[:, None] > 0, row, A - jnp.outer(A[:, :n] @ e, row))
+        return A, definite & (pivot > 0)
 
-    return -jax.lax.fori_loop(0, n, sweep, M)
+    A, definite = jax.lax.fori_loop(
+        0, n, eliminate, (jnp.concatenate([M, B], axis=-1), jnp.asarray(True))
+    )
+    return jnp.where(definite, A[:, n:], jnp.nan)
+
+
+def _step_solve(M, g):
+    """`M^-1 g` for the step: by LAPACK's Cholesky, or by `_spd_solve` where a batch of LAPACK
+    calls can deadlock (several CPU devices), at the price of a slower step there."""
+    if jax.default_backend() == "cpu" and jax.device_count() > 1:
+        return _spd_solve(M, g[:, None])[:, 0]
+    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), g)
 
 
 def _tree_fn(fn, unravel):
@@ -474,7 +485,8 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     n_obs = 2 * jnp.sum(mask)
     dof = jnp.maximum(n_obs - len(free), 1)
     sigma2 = jnp.sum(r * r) / dof
-    cov = sigma2 * _spd_inverse(J.T @ J)
+    H = J.T @ J
+    cov = sigma2 * _spd_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
 
     rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
     residual_length = jnp.linalg.norm(

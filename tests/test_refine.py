@@ -250,9 +250,13 @@ def test_secant_lm_stops_when_a_trial_loses_only_to_rounding():
 
 
 def test_covariance_inverse_equals_lapack():
-    """`_spd_inverse` (Gauss–Jordan sweeps, no LAPACK) against NumPy's inverse, on normal matrices
-    as ill-conditioned as refinement's (~1e8, focal length against distortion)."""
-    from mvcalib._refine import _spd_inverse
+    """`_spd_solve` (Gauss–Jordan, no LAPACK) against NumPy's inverse, on normal matrices as
+    ill-conditioned as refinement's (~1e8, focal length against distortion); NaN for a matrix
+    that is not positive definite, as the step's Cholesky gives."""
+    from mvcalib._refine import _spd_solve
+
+    def _spd_inverse(M):
+        return _spd_solve(M, jnp.eye(M.shape[0], dtype=M.dtype))
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 14, 16):
@@ -261,6 +265,7 @@ def test_covariance_inverse_equals_lapack():
         ours, ref = np.asarray(_spd_inverse(jnp.asarray(M))), np.linalg.inv(M)
         assert np.max(np.abs(ours - ref)) <= 1e-14 * np.max(np.abs(ref)), n
         assert np.max(np.abs(ours @ M - np.eye(n))) <= 1e-10
+    assert np.isnan(np.asarray(_spd_inverse(jnp.array([[1.0, 2.0], [2.0, 1.0]])))).all()
 
 
 @pytest.fixture(scope="module")

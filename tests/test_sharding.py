@@ -221,18 +221,19 @@ def test_shard_refuses_what_is_not_a_mesh():
 
 
 def test_refinement_of_a_large_rig_split_over_host_devices_finishes():
-    # 256 cameras over 2 host devices: with the covariance inverted by LAPACK (`getrf`) both of
-    # XLA's CPU workers waited in jaxlib's ParallelBatchMap for sub-tasks queued behind each
-    # other, and the call never returned (docs/scaling.md); 128 cameras finished.
+    # 1024 cameras over 2 host devices: with LAPACK's batched kernels (the covariance's `getrf`
+    # from 256 cameras, the step's `potrf`/`trsm` at 1024) both of XLA's CPU workers waited in
+    # jaxlib's ParallelBatchMap for sub-tasks queued behind each other, and the call never
+    # returned (docs/scaling.md); 128 cameras finished.
     code = """
 import jax, equinox as eqx, jax.numpy as jnp, numpy as np, mvcalib as mc
 target = mc.targets.box_corner_grid(6)
-rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=256, target=target, fill=(0.8, 0.95))
-dist = jnp.tile(jnp.array([-0.2, 0.1, 1e-3, 1e-3, 0.0]), (256, 1))
+rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=1024, target=target, fill=(0.8, 0.95))
+dist = jnp.tile(jnp.array([-0.2, 0.1, 1e-3, 1e-3, 0.0]), (1024, 1))
 cams = eqx.tree_at(lambda c: c.dist, rig.cameras, dist)
 _, pixels, mask = mc.synthetic.observe(jax.random.key(1), cams, rig.world, 0.3, (1000, 1100))
 seed = mc.calibrate(rig.world, pixels, mask).cameras
-seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros(256))
+seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros(1024))
 out = mc.refine(*mc.shard((seed,)), rig.world, *mc.shard((pixels, mask)))
 print(len(out.ok.sharding.device_set), int(out.ok.sum()), float(jnp.max(out.rms_after)))
 """
@@ -248,4 +249,4 @@ print(len(out.ok.sharding.device_set), int(out.ok.sum()), float(jnp.max(out.rms_
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
     devices, ok, rms = proc.stdout.split()
-    assert (int(devices), int(ok)) == (2, 256) and float(rms) < 1.0
+    assert (int(devices), int(ok)) == (2, 1024) and float(rms) < 1.0
