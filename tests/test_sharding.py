@@ -226,15 +226,11 @@ def test_refinement_of_a_large_rig_split_over_host_devices_finishes():
     # jaxlib's ParallelBatchMap for sub-tasks queued behind each other, and the call never
     # returned (docs/scaling.md); 128 cameras finished.
     code = """
-import jax, equinox as eqx, jax.numpy as jnp, numpy as np, mvcalib as mc
-target = mc.targets.box_corner_grid(6)
-rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=1024, target=target, fill=(0.8, 0.95))
-dist = jnp.tile(jnp.array([-0.2, 0.1, 1e-3, 1e-3, 0.0]), (1024, 1))
-cams = eqx.tree_at(lambda c: c.dist, rig.cameras, dist)
-_, pixels, mask = mc.synthetic.observe(jax.random.key(1), cams, rig.world, 0.3, (1000, 1100))
-seed = mc.calibrate(rig.world, pixels, mask).cameras
-seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros(1024))
-out = mc.refine(*mc.shard((seed,)), rig.world, *mc.shard((pixels, mask)))
+import jax.numpy as jnp, mvcalib as mc
+from test_refine import distorted_rig, zero_skew
+_, world, pixels, mask = distorted_rig(0, 1024)
+seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+out = mc.refine(*mc.shard((seed,)), world, *mc.shard((pixels, mask)))
 print(len(out.ok.sharding.device_set), int(out.ok.sum()), float(jnp.max(out.rms_after)))
 """
     env = dict(
@@ -242,7 +238,9 @@ print(len(out.ok.sharding.device_set), int(out.ok.sum()), float(jnp.max(out.rms_
         XLA_FLAGS="--xla_force_host_platform_device_count=2",
         JAX_ENABLE_X64="1",
         JAX_PLATFORMS="cpu",
-        PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        PYTHONPATH=os.pathsep.join(
+            [str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]
+        ),
     )
     proc = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=240
