@@ -176,8 +176,9 @@ def _eigen(S):
         return jnp.stack([v, z], 1)
 
     def change(new, old):
-        # (G is positive definite: a step never flips v's sign)
-        return jnp.max(jnp.abs(new - old), axis=0)
+        # (G is positive definite: a step never flips v's sign) (a maximum over 12 arrays, not a
+        # reduction, which XLA hands to XNNPACK at ~20x the cost)
+        return functools.reduce(jnp.maximum, list(jnp.abs(new - old)))
 
     def tracked(_, carry):
         X, _, _, last = carry
@@ -187,8 +188,9 @@ def _eigen(S):
     start = jnp.asarray([[float(i == 11), x] for i, x in enumerate(_START)], S.dtype)  # (12, 2)
     start = jnp.broadcast_to(start.reshape((12, 2) + (1,) * (S.ndim - 2)), (12, 2) + S.shape[2:])
     one = jnp.ones(S.shape[2:], S.dtype)
+    # (unrolled: no copies of the carry between steps; 5 % faster, +0.2 s of compile)
     X, previous, before, last = jax.lax.fori_loop(
-        0, _MIN_STEPS, tracked, (start, start[:, 1], one, one)
+        0, _MIN_STEPS, tracked, (start, start[:, 1], one, one), unroll=True
     )
     v, z = X[:, 0], X[:, 1]
 

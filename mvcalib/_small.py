@@ -81,10 +81,13 @@ def eigenvector_tangent(G, v, dG_v):
 
 
 def materialised(x):
-    """`x (n, *batch)`, through a product with the identity: XLA computes it once, into memory,
-    instead of fusing its computation into every consumer, where each entry of the consumer
-    recomputes the whole chain of a triangular solve (fusions of 115-143 operations in the DLT's
-    inverse iteration). With `leading_sum`, the DLT + decomposition of 4096 cameras went from 4.21
-    to 3.32 µs per camera."""
-    eye = jnp.eye(x.shape[0], dtype=x.dtype)
-    return jnp.tensordot(eye, x, axes=1, precision=jax.lax.Precision.HIGHEST)
+    """`x`, behind an optimisation barrier: XLA computes it once, into memory, instead of fusing
+    its computation into every consumer, where each entry of the consumer recomputes the whole
+    chain of a triangular solve (fusions of 115-143 operations in the DLT's inverse iteration).
+
+    A product with the identity did the same (with `leading_sum`, the DLT + decomposition of 4096
+    cameras went from 4.21 to 3.32 µs per camera); the barrier spares that product and the copy
+    that fed it (with the DLT's step change written as an elementwise maximum: 1.58-1.71 against
+    1.82-1.88 µs per camera, interleaved, 3 rounds).
+    """
+    return jax.lax.optimization_barrier(x)
