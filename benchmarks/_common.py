@@ -23,19 +23,26 @@ def results_path(name: str) -> Path:
     return RESULTS_DIR / name
 
 
-def measure(fns, *, min_time, rounds):
+def measure(fns, *, min_time, rounds, warmup=0.03):
     """Time warm (already compiled) callables in interleaved blocks of back-to-back calls.
 
     In each of `rounds` rounds every callable runs for at least `min_time / rounds` seconds (at
     least one call), so each gets at least `rounds` calls lasting `min_time` in all. Interleaving
     makes slow drifts of the machine's speed (common on shared or virtual CPUs) hit every
-    implementation alike instead of whichever ran last; calls within a block run with warm caches.
-    Returns, per name, the median and quartiles of the per-call times (seconds) and the calls.
+    implementation alike instead of whichever ran last. Each block starts with untimed calls for
+    `min(warmup, min_time / rounds)` seconds, so that the timed calls run with warm caches and
+    worker threads: after the other paths' blocks, mvcalib's DLT of 4096 cameras (~7 ms a call)
+    took up to 3x its time for its first few calls (5.1, 3.5, 3.0, 2.6, then 1.6 µs per camera),
+    which moved its median by a fifth. Returns, per name, the median and quartiles of the per-call
+    times (seconds) and the calls.
     """
     times = {name: [] for name in fns}
     block = min_time / rounds
     for _ in range(rounds):
         for name, fn in fns.items():
+            start = time.perf_counter()
+            while time.perf_counter() - start < min(warmup, block):
+                fn()
             start = time.perf_counter()
             while True:
                 t0 = time.perf_counter()
