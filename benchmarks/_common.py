@@ -30,18 +30,19 @@ def measure(fns, *, min_time, rounds, warmup=0.03):
     least one call), so each gets at least `rounds` calls lasting `min_time` in all. Interleaving
     makes slow drifts of the machine's speed (common on shared or virtual CPUs) hit every
     implementation alike instead of whichever ran last. Each block starts with untimed calls for
-    `min(warmup, min_time / rounds)` seconds, so that the timed calls run with warm caches and
-    worker threads: after the other paths' blocks, mvcalib's DLT of 4096 cameras (~7 ms a call)
-    took up to 3x its time for its first few calls (5.1, 3.5, 3.0, 2.6, then 1.6 µs per camera),
-    which moved its median by a fifth. Returns, per name, the median and quartiles of the per-call
-    times (seconds) and the calls.
+    `warmup` seconds (at least one call if `warmup > 0`), so that the timed calls run with warm
+    caches and worker threads: after the other paths' blocks, mvcalib's DLT of 4096 cameras
+    (~7 ms a call) took up to 3x its time for its first few calls (5.1, 3.5, 3.0, 2.6, then 1.6
+    µs per camera), which moved its median by a fifth, and its refinement of 256 cameras took
+    72-95 ms on the first call after SciPy's loop against 60-75 for the next ones. Returns, per
+    name, the median and quartiles of the per-call times (seconds) and the calls.
     """
     times = {name: [] for name in fns}
     block = min_time / rounds
     for _ in range(rounds):
         for name, fn in fns.items():
             start = time.perf_counter()
-            while time.perf_counter() - start < min(warmup, block):
+            while time.perf_counter() - start < warmup:
                 fn()
             start = time.perf_counter()
             while True:

@@ -234,7 +234,8 @@ def bench_one(problem, C, *, quick):
         outputs[name] = fn()
         first_call[name] = time.perf_counter() - t0
 
-    if quick:  # the ratio's two sides by the median of three calls; trf, the slowest, once
+    if quick:  # the ratio's two sides by the median of three calls (each after an untimed one:
+        # `measure`'s warm-up); trf, the slowest, once
         stats = measure({k: fns[k] for k in ("mvcalib", "scipy_lm")}, min_time=0.0, rounds=3)
         stats |= measure({"scipy_trf": fns["scipy_trf"]}, min_time=0.0, rounds=1)
     else:
