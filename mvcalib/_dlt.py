@@ -458,14 +458,18 @@ def _solve(world, pixels, mask, rcond, max_relative_rms):
     """Per camera the moments, then the eigenvectors of all cameras at once with the cameras as
     the last axis, then per camera the de-normalised P and its checks."""
     inputs = (world, pixels, mask)
-    S, *normalisation = jnp.vectorize(
-        _normalised_moments, signature="(n,3),(n,2),(n)->(4,10),(),(),(3),(),(2)"
-    )(*inputs)
-    v, s_11 = _eigen(jnp.moveaxis(S, (-2, -1), (0, 1)))
+    # (the scopes name the stages in profiles: benchmarks/profile_dlt.py)
+    with jax.named_scope("moments"):
+        S, *normalisation = jnp.vectorize(
+            _normalised_moments, signature="(n,3),(n,2),(n)->(4,10),(),(),(3),(),(2)"
+        )(*inputs)
+    with jax.named_scope("eigen"):
+        v, s_11 = _eigen(jnp.moveaxis(S, (-2, -1), (0, 1)))
     camera = functools.partial(_camera, rcond=rcond, max_relative_rms=max_relative_rms)
-    return jnp.vectorize(
-        camera, signature="(n,3),(n,2),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"
-    )(*inputs, jnp.moveaxis(v, 0, -1), s_11, *normalisation)
+    with jax.named_scope("cameras"):
+        return jnp.vectorize(
+            camera, signature="(n,3),(n,2),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"
+        )(*inputs, jnp.moveaxis(v, 0, -1), s_11, *normalisation)
 
 
 def check_relative_rms(value) -> float:

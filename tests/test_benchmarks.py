@@ -2,6 +2,7 @@
 
 import importlib.util
 import pathlib
+import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -35,3 +36,19 @@ def test_measure_times_warm_calls_after_an_untimed_warmup():
     # without the warm-up every block's first (and here only) call is a cold one
     cold = common.measure(paths_cold_after_a_switch(), min_time=0.03, rounds=3, warmup=0.0)
     assert all(st["median"] >= 0.015 for st in cold.values())
+
+
+def test_profile_dlt_attributes_the_kernels_to_the_dlt_stages(capsys):
+    sys.path.insert(0, str(ROOT))
+    try:
+        from benchmarks import profile_dlt
+    finally:
+        sys.path.remove(str(ROOT))
+    assert profile_dlt.stage_of("jit(f)/jit(solve_validated)/eigen/while/body/mul") == "eigen"
+    assert profile_dlt.stage_of("jit(f)/jit(_decompose)/vmap()/dot_general") == "decompose"
+    assert profile_dlt.stage_of("jit(f)/broadcast_in_dim") == "other"
+    profile_dlt.main(["--cameras", "64", "--calls", "2"])
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines() if line}
+    for stage in ("moments", "eigen", "cameras", "decompose"):
+        assert float(rows[stage][1]) > 0, stage  # µs per camera
+        assert int(rows[stage][3]) > 0, stage  # kernels per call
