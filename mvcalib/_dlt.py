@@ -167,12 +167,11 @@ def _eigen(S):
     def iterate(X):
         # v, and beside it z kept orthogonal to v (for the second smallest eigenvalue)
         # ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's
-        # size, which the second removes)
+        # size, which the second removes; one normalisation after both, as the length between
+        # them only sets a scale)
         Y = solve(X)
         v = _small.normalised(Y[:, 0])
-        z = Y[:, 1]
-        for _ in range(2):
-            z = _small.normalised(away(z, v))
+        z = _small.normalised(away(away(Y[:, 1], v), v))
         return jnp.stack([v, z], 1)
 
     def change(new, old):
@@ -226,8 +225,7 @@ def _eigen(S):
     # in the form that does not cancel when the iterate z is already close (a << c). Where the
     # two iterates agree to sqrt(eps), z's Rayleigh quotient a is already exact to rounding, and
     # y would be mostly rounding.
-    for _ in range(2):
-        z = _small.normalised(away(z, v))
+    z = _small.normalised(away(away(z, v), v))
     y = previous
     for _ in range(2):
         y = away(away(y, v), z)
