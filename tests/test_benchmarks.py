@@ -1,7 +1,11 @@
 """The benchmark suite's timing helper (`benchmarks/_common.py`), on fake workloads."""
 
+import hashlib
 import importlib.util
+import json
+import os
 import pathlib
+import subprocess
 import sys
 import time
 
@@ -52,3 +56,27 @@ def test_profile_dlt_attributes_the_kernels_to_the_dlt_stages(capsys):
     for stage in ("moments", "eigen", "cameras", "decompose"):
         assert float(rows[stage][1]) > 0, stage  # µs per camera
         assert int(rows[stage][3]) > 0, stage  # kernels per call
+
+
+def test_suite_smoke_run_writes_its_results_where_asked(tmp_path):
+    # `python -m benchmarks --smoke`: the suite end to end at tiny sizes (the parts that have a
+    # smoke mode: bound, dlt, triangulate), every path timed against mvcalib; nothing written
+    # into the repository's results
+    def digest():
+        files = sorted((ROOT / "benchmarks" / "results").iterdir())
+        return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+
+    before = digest()
+    env = {**os.environ, "JAX_DISABLE_MOST_OPTIMIZATIONS": "0"}  # the suite compiles as users do
+    command = [sys.executable, "-m", "benchmarks", "--smoke", "--results", str(tmp_path)]
+    proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["mode"] == "smoke" and not summary["failed"]
+    assert {"bound", "dlt", "triangulate"} <= set(summary["parts"])
+    rows = summary["summary"]
+    assert {r["benchmark"] for r in rows} >= {"DLT + decomposition", "triangulation"}
+    assert all(r["us"] > 0 for r in rows)
+    assert any(r["path"] == "mvcalib" and r["peer_over_mvcalib"] == 1.0 for r in rows)
+    assert (tmp_path / "summary.png").stat().st_size > 0
+    assert digest() == before
