@@ -1,7 +1,7 @@
 """The benchmark suite's timing helper (`benchmarks/_common.py`), on fake workloads."""
 
 import hashlib
-import importlib.util
+import importlib
 import json
 import os
 import pathlib
@@ -10,9 +10,18 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("_bench_common", ROOT / "benchmarks" / "_common.py")
-common = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(common)
+
+
+def benchmark_module(name):
+    """`benchmarks.<name>`, imported from the repository root (not an installed package)."""
+    sys.path.insert(0, str(ROOT))
+    try:
+        return importlib.import_module(f"benchmarks.{name}")
+    finally:
+        sys.path.remove(str(ROOT))
+
+
+common = benchmark_module("_common")
 
 
 def paths_cold_after_a_switch(cold=0.02, warm=0.001):
@@ -43,11 +52,7 @@ def test_measure_times_warm_calls_after_an_untimed_warmup():
 
 
 def test_profile_dlt_attributes_the_kernels_to_the_dlt_stages(capsys):
-    sys.path.insert(0, str(ROOT))
-    try:
-        from benchmarks import profile_dlt
-    finally:
-        sys.path.remove(str(ROOT))
+    profile_dlt = benchmark_module("profile_dlt")
     assert profile_dlt.stage_of("jit(f)/jit(solve_validated)/eigen/while/body/mul") == "eigen"
     assert profile_dlt.stage_of("jit(f)/jit(_decompose)/vmap()/dot_general") == "decompose"
     assert profile_dlt.stage_of("jit(f)/broadcast_in_dim") == "other"
