@@ -72,7 +72,8 @@ def _robust_weights(loss, s):
 # ------------------------------------------------------------------------------ the solver
 class _SecantLMState(eqx.Module):
     residual: Array  # at the current point, flattened
-    jacobian: Array  # (m, n)
+    jacobian: Array  # (n, m): transposed, one row per parameter
+    gradient: Array  # jacobian @ residual
     curvature: Array  # (n, n): the secant estimate of sum_i r_i Hess(r_i)
     augmented: Array  # whether the next step's model adds `curvature` (else Gauss–Newton)
     cost: Array  # |residual|^2
@@ -111,9 +112,10 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     coordinates of ~1000) rather than with the cost, and raising the damping until a trial wins
     took up to 8 more steps a camera; or when a trial changes the cost by no more than its
     rounding (an exact fit; with noise, ~1e-7 standard errors from the optimum). `y` and the
-    residuals may be any pytrees of arrays; the Jacobian comes from `jax.jacfwd`, or, for a 1-D
-    `y`, from `options={"jacobian": jac}` with `jac(y, args)` the `(residuals, len(y))` matrix of
-    the flattened residuals' derivatives (as SciPy's `jac=`).
+    residuals may be any pytrees of arrays; the Jacobian comes from forward-mode autodiff, or,
+    for a 1-D `y`, from `options={"jacobian_transpose": jac}` with `jac(y, args)` the
+    `(len(y), residuals)` matrix of the flattened residuals' derivatives, one row per parameter
+    (the transpose of SciPy's `jac=`: the solver's products then run along contiguous rows).
 
     **Example:**
 
@@ -134,26 +136,29 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     initial_damping: float = 1e-5
 
     def _evaluate(self, fn, y, args, options):
-        """Residuals and Jacobian at the flat point `y`, both flattened (any pytrees in `fn`)."""
+        """Residuals and transposed Jacobian `(n, m)` at the flat point `y`, the residuals
+        flattened (any pytrees in `fn`)."""
 
         def flat_fn(y_flat):
             out, aux = fn(y_flat, args)
             return ravel_pytree(out)[0], aux
 
         residual, aux = flat_fn(y)
-        jacobian = options.get("jacobian")
-        if jacobian is None:
-            return residual, jax.jacfwd(lambda y: flat_fn(y)[0])(y), aux
+        jacobian = options.get("jacobian_transpose")
+        if jacobian is None:  # forward mode, one row per parameter (jacfwd's pushforwards)
+            pushforward = lambda v: jax.jvp(lambda y: flat_fn(y)[0], (y,), (v,))[1]  # noqa: E731
+            return residual, jax.vmap(pushforward)(jnp.eye(y.shape[0], dtype=y.dtype)), aux
         return residual, jacobian(y, args), aux
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del f_struct, aux_struct, tags
         y_flat, unravel = ravel_pytree(y)
-        r, J, aux = self._evaluate(_tree_fn(fn, unravel), y_flat, args, options)
+        r, Jt, aux = self._evaluate(_tree_fn(fn, unravel), y_flat, args, options)
         n = y_flat.shape[0]
         return _SecantLMState(
             residual=r,
-            jacobian=J,
+            jacobian=Jt,
+            gradient=Jt @ r,
             curvature=jnp.zeros((n, n), y_flat.dtype),
             augmented=jnp.asarray(False),
             cost=r @ r,
@@ -168,14 +173,14 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         del tags
         y, unravel = ravel_pytree(y)
         fn = _tree_fn(fn, unravel)
-        r, J, S, cost = state.residual, state.jacobian, state.curvature, state.cost
-        H = J.T @ J
-        g = J.T @ r
+        r, Jt, S, cost = state.residual, state.jacobian, state.curvature, state.cost
+        H = Jt @ Jt.T
+        g = state.gradient
         diag = jnp.diagonal(H)
         diag = jnp.maximum(diag, jnp.finfo(y.dtype).eps * jnp.max(diag))
         A = jnp.where(state.augmented, H + S, H)
-        dy = -_step_solve(A + state.damping * jnp.diag(diag), g)
-        r_new, J_new, aux_new = self._evaluate(fn, y + dy, args, options)
+        dy = -_definite_solve(A + state.damping * jnp.diag(diag), g[:, None])[:, 0]
+        r_new, Jt_new, aux_new = self._evaluate(fn, y + dy, args, options)
         cost_new = r_new @ r_new
         cost_new = jnp.where(jnp.isnan(cost_new), jnp.inf, cost_new)  # not definite, or NaN
         accept = cost_new < cost
@@ -186,8 +191,9 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         good = actual > 0.25 * jnp.where(state.augmented, augmented, gauss_newton)
 
         # the structured secant update of S (Dennis, Gay & Welsch), with NL2SOL's sizing
-        y_sharp = J_new.T @ r_new - J.T @ r_new
-        y_full = J_new.T @ r_new - g
+        g_new = Jt_new @ r_new
+        y_sharp = g_new - Jt @ r_new
+        y_full = g_new - g
         ys = y_full @ dy
         Ss = S @ dy
         sizing = jnp.minimum(1.0, jnp.abs(dy @ y_sharp) / jnp.maximum(jnp.abs(dy @ Ss), _TINY))
@@ -212,7 +218,8 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
         state = _SecantLMState(
             residual=keep(r_new, r),
-            jacobian=keep(J_new, J),
+            jacobian=keep(Jt_new, Jt),
+            gradient=keep(g_new, g),
             curvature=keep(S_new, S),
             augmented=jnp.abs(actual - augmented) < jnp.abs(actual - gauss_newton),
             cost=keep(cost_new, cost),
@@ -260,12 +267,13 @@ def _spd_solve(M, B):
     return jnp.where(definite, A[:, n:], jnp.nan)
 
 
-def _step_solve(M, g):
-    """`M^-1 g` for the step: by LAPACK's Cholesky, or by `_spd_solve` where a batch of LAPACK
-    calls can deadlock (several CPU devices), at the price of a slower step there."""
+def _definite_solve(M, B):
+    """`M^-1 B` for a symmetric `M (n, n)` and `B (n, m)`, NaN unless `M` is positive definite:
+    by LAPACK's Cholesky, or by `_spd_solve` where a batch of LAPACK calls can deadlock (several
+    CPU devices), at the price of a slower solve there."""
     if jax.default_backend() == "cpu" and jax.device_count() > 1:
-        return _spd_solve(M, g[:, None])[:, 0]
-    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), g)
+        return _spd_solve(M, B)
+    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), B)
 
 
 def _tree_fn(fn, unravel):
@@ -439,25 +447,26 @@ def _residuals(y, args, free):
     return r * _robust_weights(loss, r[0] * r[0] + r[1] * r[1])
 
 
-def _residual_jacobian(y, args, free):
-    """`d _residuals / d y`, `(2 N, P)`, from the written-out `_pixel_columns` (under
-    `jax.jacfwd` the custom JVP would also multiply by the identity of the tangents); only the
-    free columns are built, each as one array over the points."""
+def _residual_jacobian_t(y, args, free):
+    """`d _residuals / d y` transposed, `(P, 2 N)`, one row per free parameter, from the
+    written-out `_pixel_columns` (under `jax.jacfwd` the custom JVP would also multiply by the
+    identity of the tangents); only the free rows are built, each as one array over the points.
+    Rows rather than columns: the solver's `J^T J` and `J^T r` then contract contiguous rows
+    (on a CPU 4.6 against 6.3 µs a camera for `J^T J`, 0.9 against 2.4 for `J^T r`)."""
     p0, R0, scale, world, pixels, mask, loss = args
     p = _parameters(y, p0, scale, free)
     columns = _pixel_columns(p, R0, world)
-    Ju, Jv = (jnp.stack([jnp.where(mask, columns[k][c], 0.0) * scale[k] for k in free], -1)
-              for c in range(2))  # fmt: skip
+    rows = [[jnp.where(mask, d, 0.0) * scale[k] for d in columns[k]] for k in free]
     if loss is not None:  # d (w(|r|^2) r) = w dr + r w'(|r|^2) 2 r^T dr, point by point
         r = jnp.where(mask[:, None], _pixels(p, R0, world) - pixels, 0.0)
         s = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
         w = _robust_weights(loss, s)
         dw = jax.vmap(jax.grad(lambda s: _robust_weights(loss, s)))(s)
-        rTJ = r[:, :1] * Ju + r[:, 1:] * Jv
-        Ju, Jv = (
-            w[:, None] * J + 2.0 * (dw * r[:, c])[:, None] * rTJ for c, J in enumerate((Ju, Jv))
-        )
-    return jnp.concatenate([Ju, Jv])
+        rows = [[w * d + 2.0 * dw * r[:, c] * (r[:, 0] * du + r[:, 1] * dv)
+                 for c, d in enumerate((du, dv))] for du, dv in rows]  # fmt: skip
+    # one concatenation of (1, N) pieces, u and v of each row in turn: under vmap `jnp.stack`
+    # would put the cameras second and XLA would transpose the Jacobian at every step
+    return jnp.concatenate([d.reshape(1, -1) for row in rows for d in row]).reshape(len(rows), -1)
 
 
 def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
@@ -469,9 +478,9 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     scale = _scales(p0)
     args = (p0, cam.R, scale, world, pixels, mask, loss)
     residuals = functools.partial(_residuals, free=free)
-    jacobian = functools.partial(_residual_jacobian, free=free)
+    jacobian_t = functools.partial(_residual_jacobian_t, free=free)
     y0 = jnp.zeros(len(free), dtype)
-    options = {"jacobian": jacobian} if isinstance(solver, SecantLM) else {}
+    options = {"jacobian_transpose": jacobian_t} if isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
         residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
     )
@@ -481,12 +490,12 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
     # (robustly weighted) residuals at the optimum, in the parameters' own units.
     r = residuals(y, args).reshape(-1)
-    J = jacobian(y, args) / scale[jnp.asarray(free)]  # dr/dp
+    Jt = jacobian_t(y, args) / scale[jnp.asarray(free), None]  # dr/dp, transposed
     n_obs = 2 * jnp.sum(mask)
     dof = jnp.maximum(n_obs - len(free), 1)
     sigma2 = jnp.sum(r * r) / dof
-    H = J.T @ J
-    cov = sigma2 * _spd_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
+    H = Jt @ Jt.T
+    cov = sigma2 * _definite_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
 
     rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
     residual_length = jnp.linalg.norm(

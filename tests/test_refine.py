@@ -224,6 +224,33 @@ def test_secant_lm_matches_scipy_on_a_pytree_curve_fit():
     assert int(sol.result._value) == 0 and int(sol.stats["num_steps"]) < 30  # noqa: SLF001
 
 
+def test_secant_lm_with_a_given_transposed_jacobian_equals_autodiff():
+    """`options={"jacobian_transpose": jac}`, one row per parameter, takes the same steps to the
+    same optimum as the solver's own forward-mode Jacobian; a Jacobian in SciPy's orientation
+    (one row per residual) is refused by its shape rather than used."""
+    import optimistix as optx
+
+    t = jnp.linspace(0.0, 4.0, 50)
+    data = 2.5 * jnp.exp(-1.3 * t) + 0.5 + 0.05 * jnp.sin(7.0 * t)
+    fn = lambda y, _: y[0] * jnp.exp(-y[1] * t) + y[2] - data  # noqa: E731
+
+    def jac_t(y, _):
+        e = jnp.exp(-y[1] * t)
+        return jnp.stack([e, -y[0] * t * e, jnp.ones_like(t)])
+
+    y0 = jnp.array([1.0, 0.5, 0.0])
+    auto = optx.least_squares(fn, mc.SecantLM(rtol=1e-8), y0, max_steps=100)
+    given = optx.least_squares(
+        fn, mc.SecantLM(rtol=1e-8), y0, options={"jacobian_transpose": jac_t}, max_steps=100
+    )
+    np.testing.assert_allclose(given.value, auto.value, rtol=1e-12)
+    assert int(given.stats["num_steps"]) == int(auto.stats["num_steps"])
+    with pytest.raises((TypeError, ValueError)):
+        optx.least_squares(
+            fn, mc.SecantLM(), y0, options={"jacobian_transpose": lambda y, a: jac_t(y, a).T}
+        )
+
+
 def test_secant_lm_stops_when_a_trial_loses_only_to_rounding():
     """Linear least squares whose residuals are differences of pixel-sized (~1000) terms: the
     first step lands on the optimum, after which a trial's cost differs from it by rounding of
@@ -293,8 +320,9 @@ def test_chunked_cameras_equal_cameras_solved_in_one_batch(rig48):
 
 def test_written_out_jacobians_equal_autodiff_of_camera_project():
     """The refinement's Jacobians (`_pixel_jacobian` behind a custom JVP, and the weighted
-    residuals' `_residual_jacobian`, here with a robust loss) against forward-mode autodiff of
-    `Camera.project`; without a loss, every refinement's agreement with SciPy tests them."""
+    residuals' `_residual_jacobian_t`, transposed, here with a robust loss) against forward-mode
+    autodiff of `Camera.project`; without a loss, every refinement's agreement with SciPy tests
+    them."""
     from mvcalib import _refine as R
 
     loss = ROBUST[0]
@@ -316,7 +344,7 @@ def test_written_out_jacobians_equal_autodiff_of_camera_project():
     # each under one jit: op by op, jacfwd's many small operations compile one at a time
     expected = jax.jit(jax.jacfwd(plain))(y)
     scale = np.max(np.abs(expected))
-    written = jax.jit(lambda y: R._residual_jacobian(y, args, free))(y)
-    np.testing.assert_allclose(written, expected, atol=1e-13 * scale)
+    written = jax.jit(lambda y: R._residual_jacobian_t(y, args, free))(y)
+    np.testing.assert_allclose(written.T, expected, atol=1e-13 * scale)
     through_jvp = jax.jit(jax.jacfwd(lambda y: R._residuals(y, args, free).reshape(-1)))(y)
     np.testing.assert_allclose(through_jvp, expected, atol=1e-13 * scale)
