@@ -391,8 +391,7 @@ def _pixel_columns(p, R0, world):
     dR = jnp.moveaxis(jax.jacfwd(rodrigues)(p[5:8]), -1, 0) @ R0  # (3, 3, 3): d R / d w_k
     X = [world[:, i] for i in range(3)]
     xc = [R[i, 0] * X[0] + R[i, 1] * X[1] + R[i, 2] * X[2] + p[8 + i] for i in range(3)]
-    iz = 1.0 / xc[2]
-    x, y = xc[0] * iz, xc[1] * iz
+    x, y = xc[0] / xc[2], xc[1] / xc[2]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
@@ -404,9 +403,9 @@ def _pixel_columns(p, R0, world):
     dxd_dx = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
     dyd_dy = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
     duv_dxy = [[au * dxd_dx + s * cross, au * cross + s * dyd_dy], [av * cross, av * dyd_dy]]
-    duv_dc = [[a * iz, b * iz, -(a * x + b * y) * iz] for a, b in duv_dxy]
-    # XLA would recompute these shared per-point values inside every column it fuses them into
-    x, y, r2, xd, yd, duv_dc = jax.lax.optimization_barrier((x, y, r2, xd, yd, duv_dc))
+    # Divisions, not products with 1 / z: XLA fuses cheap operations into every consumer,
+    # recomputing them per column, but computes an expensive one (a division) once, to memory.
+    duv_dc = [[a / xc[2], b / xc[2], -(a * x + b * y) / xc[2]] for a, b in duv_dxy]
     zero, one = jnp.zeros_like(x), jnp.ones_like(x)
     r4 = r2 * r2
     dxd = [x * r2, x * r4, 2.0 * x * y, r2 + 2.0 * x * x, x * r4 * r2]  # d xd / d(k1..k3)
