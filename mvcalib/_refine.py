@@ -511,14 +511,15 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     )  # fmt: skip
 
 
-CHUNK = 32
+CHUNK = 16
 
 
 def _chunk_size(n_cameras: int) -> int | None:
     """Cameras solved side by side in one loop (`_sharding.cpu_chunk`): on one CPU device, at most
     `CHUNK` at a time; else all. A vmapped solve runs until its slowest camera converges, and on a
-    CPU a chunk's Jacobians stay in cache: on the refine benchmark (256 cameras) chunks of 32 take
-    a third of the time of one batch of 256.
+    CPU a chunk's Jacobians stay in cache: on the refine benchmark (256 cameras of 108 points)
+    chunks of 16 take 37 ms, of 8, 12, 24, 32 cameras 39-41 ms, one batch of 256 56 ms; on 512
+    cameras of 19 points, chunks of 16 and of 32 take the same time.
     """
     return _sharding.cpu_chunk(n_cameras, CHUNK)
 

@@ -297,7 +297,7 @@ def test_covariance_inverse_equals_lapack():
 
 @pytest.fixture(scope="module")
 def rig48():
-    """48 cameras: more than one chunk of `CHUNK` on a CPU (two of 24)."""
+    """48 cameras: more than one chunk of `CHUNK` on a CPU (three of 16)."""
     cams, world, pixels, mask = distorted_rig(0, 48)
     seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
     return seed, world, pixels, mask
