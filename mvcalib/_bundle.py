@@ -215,14 +215,22 @@ def refine_rig(
     shared_idx = jnp.asarray(shared_free, dtype=int)
     args = (p0, cameras.R, scale, free_idx, shared_idx, transform, world, pixels, mask,
             anchors_arg, loss)  # fmt: skip
+    whiten = False
     if solver is None:
         n_anchor = 0 if anchor_ids is None else len(anchor_ids)
         n_params = sum(x.size for x in y0.values())
         solver = default_solver(dtype, 2 * mask.size + 3 * n_anchor, n_params)
+        whiten = _matrix_free(2 * mask.size + 3 * n_anchor, n_params)
 
-    sol = _solve(_residuals, args, y0, solver, max_steps)
+    if whiten:
+        W = _whitening(args, y0)
+        sol = _solve(_whitened_residuals, (args, W), y0, solver, max_steps)
+        y = _whitened(sol.value, W)
+    else:
+        sol = _solve(_residuals, args, y0, solver, max_steps)
+        y = sol.value
     refined, placement, new_world = _unknowns(
-        sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
+        y, p0, cameras.R, scale, free_idx, shared_idx, transform, world
     )
     before = masked_rms(cameras, transform.apply(world), pixels, mask)
     after = masked_rms(refined, placement.apply(new_world), pixels, mask)
@@ -258,11 +266,13 @@ def default_solver(dtype, n_residuals: int, n_parameters: int) -> optx.AbstractL
     the squared condition number of the normal equations would exceed.
 
     Matrix-free LSMR (Jacobian-vector products only) is what lets 64 cameras x 10k residuals
-    run in under 1 GB; lineax's LSMR has however been seen to return NaN on bundle adjustment
-    with free points, where the dense QR converges, so it is used only where QR cannot be.
-    Its steps are inexact at ~1e-12, so the tolerance is 1e-8 (same optimum, measured).
+    run in under 1 GB. `refine_rig` runs it on whitened unknowns (`_whitening`), its
+    preconditioner: on the raw ones LSMR needed ~100 products a step on that rig (37 s a call,
+    against 1 s whitened) and returned NaN on rigs with distortion and anchors or with free
+    points, where the whitened solve reaches the dense solver's optimum. The steps are inexact
+    at ~1e-12, so the tolerance is 1e-8 (same optimum, measured).
     """
-    if n_residuals * n_parameters <= DENSE_LIMIT:
+    if not _matrix_free(n_residuals, n_parameters):
         if dtype == jnp.float64:
             return SecantLM(rtol=1e-5)
         return optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)
@@ -270,6 +280,86 @@ def default_solver(dtype, n_residuals: int, n_parameters: int) -> optx.AbstractL
     return optx.LevenbergMarquardt(
         rtol=tol, atol=tol, linear_solver=lx.LSMR(rtol=1e-12, atol=1e-12)
     )
+
+
+def _matrix_free(n_residuals: int, n_parameters: int) -> bool:
+    return n_residuals * n_parameters > DENSE_LIMIT
+
+
+@jax.jit
+def _whitening(args, y0):
+    """Per block of unknowns, `W = c L^-T` with `L L^T` the block's `J^T J` at the start `y0` and
+    `c` the norm of the residuals there: unknowns `y = W z` make every diagonal block of the
+    Jacobian's `J^T J` `c^2` times the identity at the start. The blocks are a camera's
+    parameters, a point's coordinates (free points), the placement, the shared intrinsics.
+
+    A change of variables that leaves the optimum where it is, and the preconditioner of the
+    matrix-free solve: LSMR's iterations grow with the condition number of the Jacobian, which
+    the correlations within a camera's parameters (focal length against distance, principal
+    point against rotation) make large. A camera's residuals depend on its own parameters only,
+    a residual on one point only, so one Jacobian-vector product per parameter of a block,
+    made for all blocks at once, gives every block's columns. `W` carries no derivative (the
+    optimum does not depend on it).
+    """
+    y0 = jax.lax.stop_gradient(y0)
+    args = jax.lax.stop_gradient(args)
+    _, push = jax.linearize(lambda y: _residuals(y, args), y0)
+    anchor_ids = args[9][0]
+
+    def columns(name):
+        """The residuals' tangents for a unit step of each parameter of every block of `name`:
+        `(p, *residual shape)` for pixels and anchors."""
+        leaf = y0[name]
+        p = leaf.shape[-1]
+        zeros = jax.tree_util.tree_map(jnp.zeros_like, y0)
+        tangent = lambda k: {**zeros, name: jnp.zeros_like(leaf).at[..., k].set(1.0)}  # noqa: E731
+        return jax.vmap(lambda k: push(tangent(k)))(jnp.arange(p))
+
+    def gram(name):
+        t = columns(name)
+        pix = t["pixels"]  # (p, C, N, 2)
+        anchors = t.get("anchors")  # (p, A, 3)
+        if name == "cams":  # a block per camera
+            return jnp.einsum("kcnd,lcnd->ckl", pix, pix)
+        if name == "X":  # a block per point, whose anchor residual is its own too
+            G = jnp.einsum("kcnd,lcnd->nkl", pix, pix)
+            if anchors is not None:
+                G = G.at[anchor_ids].add(jnp.einsum("kad,lad->akl", anchors, anchors))
+            return G
+        G = jnp.einsum("kcnd,lcnd->kl", pix, pix)  # one block
+        return G if anchors is None else G + jnp.einsum("kad,lad->kl", anchors, anchors)
+
+    # in units of the starting residuals' norm: a unit step of z changes the residuals by that
+    # much, so optimistix's initial damping (1) is small against J^T J (fewer steps measured)
+    r0 = jnp.sqrt(sum(jnp.sum(r * r) for r in jax.tree_util.tree_leaves(_residuals(y0, args))))
+    c = jnp.where(r0 > 0, r0, 1.0)
+    return {name: c * _inverse_cholesky_transpose(gram(name)) for name in y0}
+
+
+def _inverse_cholesky_transpose(G):
+    """`D^-1 L^-T` with `L L^T = D^-1 G D^-1` and `D = sqrt(diag(G))`, for `G (..., p, p)`;
+    `D^-1` alone where that is not finite (a singular block), `1` for a parameter with no
+    effect at all."""
+    d = jnp.sqrt(jnp.diagonal(G, axis1=-2, axis2=-1))
+    d = jnp.where(d > 0, d, 1.0)
+    p = G.shape[-1]
+    correlation = G / (d[..., :, None] * d[..., None, :]) + 1e-12 * jnp.eye(p, dtype=G.dtype)
+    L = jnp.linalg.cholesky(correlation)
+    eye = jnp.broadcast_to(jnp.eye(p, dtype=G.dtype), G.shape)
+    Lt_inv = jax.scipy.linalg.solve_triangular(L, eye, lower=True, trans=1)
+    W = Lt_inv / d[..., :, None]
+    finite = jnp.all(jnp.isfinite(W), axis=(-2, -1), keepdims=True)
+    return jnp.where(finite, W, eye / d[..., :, None])
+
+
+def _whitened(z, W):
+    """The unknowns `y = W z`, block by block."""
+    return {name: jnp.einsum("...kl,...l->...k", W[name], z[name]) for name in z}
+
+
+def _whitened_residuals(z, args_and_W):
+    args, W = args_and_W
+    return _residuals(_whitened(z, W), args)
 
 
 @eqx.filter_jit

@@ -141,3 +141,79 @@ def test_bundle_adjust_and_aniposelib_files_refuse_bad_input(tmp_path):
     bad.write_text("title = 'no cameras'\n")
     with pytest.raises(ValueError, match="no \\[cam_N\\]"):
         mc.io.load_aniposelib(bad)
+
+
+def _matrix_free_cases():
+    """The three joint problems above, with radial distortion: (name, arguments, keywords)."""
+    target, rig = grid_rig(0, 6)
+    rng = np.random.default_rng(0)
+    measured = target.global_points + rng.normal(scale=0.2, size=target.global_points.shape)
+    ids = np.arange(0, len(target.points), 4)
+    T = mc.procrustes(target.points[ids], measured[ids])
+    seed = mc.to_global(zero_skew(mc.calibrate(rig.world, rig.pixels, rig.mask).cameras), T)
+    yield (
+        "anchors",
+        (seed, rig.world, rig.pixels, rig.mask),
+        dict(transform=T, anchors=(ids, measured[ids]), anchor_sigma=0.2),
+    )
+    target, rig = grid_rig(1, 8)
+    rough = np.asarray(rig.world) + rng.normal(scale=0.5, size=rig.world.shape)
+    seed = zero_skew(mc.calibrate(rough, rig.pixels, rig.mask).cameras)
+    ids = np.arange(0, len(target.points), 5)
+    yield (
+        "free points",
+        (seed, rough, rig.pixels, rig.mask),
+        dict(anchors=(ids, np.asarray(rig.world)[ids]), anchor_sigma=0.05, points="free"),
+    )
+    target, rig = grid_rig(2, 6, same_intrinsics=True)
+    seed = zero_skew(mc.calibrate(rig.world, rig.pixels, rig.mask).cameras)
+    yield "shared", (seed, rig.world, rig.pixels, rig.mask), dict(shared_intrinsics=True)
+
+
+def test_matrix_free_solve_reaches_the_dense_optimum(monkeypatch):
+    # Large rigs are solved matrix-free (LSMR) on whitened unknowns. Without the whitening, LSMR
+    # returned NaN after one step on the first two of these problems (distortion with anchors,
+    # free points); here every one must reach the optimum of the dense solver (SecantLM).
+    for name, args, kwargs in _matrix_free_cases():
+        dense = mc.refine_rig(*args, distortion=("k1", "k2"), **kwargs)
+        monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)  # every problem is "large"
+        free = mc.refine_rig(*args, distortion=("k1", "k2"), **kwargs)
+        monkeypatch.undo()
+        assert bool(dense.ok) and bool(free.ok), (name, dense.messages(), free.messages())
+        assert np.all(np.asarray(free.rms_after) < np.asarray(free.rms_before)), name
+        np.testing.assert_allclose(free.rms_after, dense.rms_after, rtol=1e-7, err_msg=name)
+        np.testing.assert_allclose(free.cameras.alpha_u, dense.cameras.alpha_u, rtol=1e-7)
+        # (k2 to 1e-6 of ~0.02: a thousandth of its standard error)
+        np.testing.assert_allclose(free.cameras.dist, dense.cameras.dist, atol=1e-5)
+        np.testing.assert_allclose(free.cameras.center, dense.cameras.center, atol=1e-5)
+        np.testing.assert_allclose(free.world, dense.world, atol=1e-6)
+        np.testing.assert_allclose(free.transform.t, dense.transform.t, atol=1e-7)
+
+
+def test_whitening_makes_every_block_of_the_normal_matrix_the_identity(monkeypatch):
+    # J^T J of the whitened unknowns, from the full Jacobian by autodiff: c^2 times the identity
+    # on each camera's block and on the placement's (c: the starting residuals' norm), up to
+    # the 1e-12 ridge that keeps the factorisation definite, times the blocks' conditioning
+    _, args, kwargs = next(_matrix_free_cases())
+    captured = {}
+
+    def spy(fn, args, y0, solver, max_steps):
+        captured.update(args=args, y0=y0)
+        raise StopIteration
+
+    monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)
+    monkeypatch.setattr(mc._bundle, "_solve", spy)
+    with pytest.raises(StopIteration):
+        mc.refine_rig(*args, distortion=("k1",), **kwargs)
+    problem, W = captured["args"]
+    z0 = captured["y0"]
+    J = jax.jacfwd(lambda z: mc._bundle._whitened_residuals(z, (problem, W)))(z0)
+    residuals = mc._bundle._residuals(mc._bundle._whitened(z0, W), problem)
+    c2 = sum(float(jnp.sum(r * r)) for r in jax.tree_util.tree_leaves(residuals))
+    C, p = z0["cams"].shape
+    cams = np.asarray(J["pixels"]["cams"])  # (C, N, 2, C, p): a camera's residuals, its columns
+    for c in range(C):
+        Jc = cams[:, :, :, c, :].reshape(-1, p)
+        np.testing.assert_allclose(Jc.T @ Jc / c2, np.eye(p), atol=1e-7)
+    JT = np.concatenate([np.asarray(J[k]["T"]).reshape(-1, 6) for k in ("pixels", "anchors")])
+    np.testing.assert_allclose(JT.T @ JT / c2, np.eye(6), atol=1e-7)
