@@ -215,22 +215,16 @@ def refine_rig(
     shared_idx = jnp.asarray(shared_free, dtype=int)
     args = (p0, cameras.R, scale, free_idx, shared_idx, transform, world, pixels, mask,
             anchors_arg, loss)  # fmt: skip
-    whiten = False
     if solver is None:
         n_anchor = 0 if anchor_ids is None else len(anchor_ids)
         n_params = sum(x.size for x in y0.values())
-        solver = default_solver(dtype, 2 * mask.size + 3 * n_anchor, n_params)
-        whiten = _matrix_free(2 * mask.size + 3 * n_anchor, n_params)
+        solver = default_solver(
+            dtype, 2 * mask.size + 3 * n_anchor, n_params, anchor_ids=anchors_arg[0]
+        )
 
-    if whiten:
-        W = _whitening(args, y0)
-        sol = _solve(_whitened_residuals, (args, W), y0, solver, max_steps)
-        y = _whitened(sol.value, W)
-    else:
-        sol = _solve(_residuals, args, y0, solver, max_steps)
-        y = sol.value
+    sol = _solve(_residuals, args, y0, solver, max_steps)
     refined, placement, new_world = _unknowns(
-        y, p0, cameras.R, scale, free_idx, shared_idx, transform, world
+        sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
     )
     before = masked_rms(cameras, transform.apply(world), pixels, mask)
     after = masked_rms(refined, placement.apply(new_world), pixels, mask)
@@ -254,7 +248,9 @@ def refine_rig(
 DENSE_LIMIT = 3e7  # Jacobian entries (240 MB in float64) up to which LM solves by dense QR
 
 
-def default_solver(dtype, n_residuals: int, n_parameters: int) -> optx.AbstractLeastSquaresSolver:
+def default_solver(
+    dtype, n_residuals: int, n_parameters: int, *, anchor_ids=None
+) -> optx.AbstractLeastSquaresSolver:
     """LM with a dense step while the Jacobian fits comfortably in memory, else matrix-free.
 
     The dense step in float64 is `SecantLM` (normal equations by Cholesky, and the model keeps
@@ -265,75 +261,147 @@ def default_solver(dtype, n_residuals: int, n_parameters: int) -> optx.AbstractL
     same time); in float32 it is optimistix's LM with QR of the augmented Jacobian, whose precision
     the squared condition number of the normal equations would exceed.
 
-    Matrix-free LSMR (Jacobian-vector products only) is what lets 64 cameras x 10k residuals
-    run in under 1 GB. `refine_rig` runs it on whitened unknowns (`_whitening`), its
-    preconditioner: on the raw ones LSMR needed ~100 products a step on that rig (37 s a call,
-    against 1 s whitened) and returned NaN on rigs with distortion and anchors or with free
-    points, where the whitened solve reaches the dense solver's optimum. The steps are inexact
-    at ~1e-12, so the tolerance is 1e-8 (same optimum, measured).
+    Matrix-free, optimistix's LM solves each step by LSMR (Jacobian-vector products only),
+    which is what lets 64 cameras x 10k residuals run in under 1 GB, preconditioned block by
+    block (`_BlockLSMR`; `anchor_ids`: `refine_rig`'s anchored points). Its steps are inexact at
+    ~1e-12, so the tolerance is 1e-8 (same optimum, measured).
     """
-    if not _matrix_free(n_residuals, n_parameters):
+    if n_residuals * n_parameters <= DENSE_LIMIT:
         if dtype == jnp.float64:
             return SecantLM(rtol=1e-5)
         return optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)
     tol = 1e-8 if dtype == jnp.float64 else 1e-5
     return optx.LevenbergMarquardt(
-        rtol=tol, atol=tol, linear_solver=lx.LSMR(rtol=1e-12, atol=1e-12)
+        rtol=tol, atol=tol, linear_solver=_BlockLSMR(rtol=1e-12, atol=1e-12, anchor_ids=anchor_ids)
     )
 
 
-def _matrix_free(n_residuals: int, n_parameters: int) -> bool:
-    return n_residuals * n_parameters > DENSE_LIMIT
+# Unknowns of `refine_rig` that any residual may depend on (preconditioned as one block), and
+# those whose blocks are their leading axis (a camera's parameters, a point's coordinates).
+_GLOBAL, _BLOCKED = ("shared", "T"), ("cams", "X")
 
 
-@jax.jit
-def _whitening(args, y0):
-    """Per block of unknowns, `W = c L^-T` with `L L^T` the block's `J^T J` at the start `y0` and
-    `c` the norm of the residuals there: unknowns `y = W z` make every diagonal block of the
-    Jacobian's `J^T J` `c^2` times the identity at the start. The blocks are a camera's
-    parameters, a point's coordinates (free points), the placement, the shared intrinsics.
+class _BlockLSMR(lx.AbstractLinearSolver):
+    """LSMR for `refine_rig`'s damped Gauss–Newton steps, right-preconditioned so that the
+    normal matrix of the step's least-squares problem is the identity block by block.
 
-    A change of variables that leaves the optimum where it is, and the preconditioner of the
-    matrix-free solve: LSMR's iterations grow with the condition number of the Jacobian, which
-    the correlations within a camera's parameters (focal length against distance, principal
-    point against rotation) make large. A camera's residuals depend on its own parameters only,
-    a residual on one point only, so one Jacobian-vector product per parameter of a block,
-    made for all blocks at once, gives every block's columns. `W` carries no derivative (the
-    optimum does not depend on it).
+    The blocks are a camera's parameters, a point's coordinates (free points) and the global
+    unknowns (the placement and the shared intrinsics, together). With `B` a block's part of the
+    normal matrix `J^T J + lambda I`, `E` its coupling to the global unknowns and `S = G - sum
+    E^T B^-1 E` the global part's Schur complement, the step is `dy = M dz` with `dy_g = W_g dz_g`
+    and `dy_b = W_b dz_b - B^-1 E dy_g`, `W = L^-T` from the Cholesky factor `L` of `B` (of `S`
+    for the global part): a block moves with the global unknowns so that its residuals stay
+    put, which is what separates the placement from the cameras' poses that explain the images
+    equally well. (Cameras and free points stay coupled: there the preconditioner is per block.)
+
+    LSMR's iterations grow with the condition number of its operator, which the correlations
+    within a camera's parameters (focal length against distance, distortion coefficients) and
+    between the cameras and the placement make large (1.8e7 on 8 anchored cameras with
+    distortion, against 1 + 3e-6 preconditioned): unpreconditioned, it took ~100 products a step
+    on 64 cameras x 10k residuals (37 s a call) and returned NaN on rigs with distortion and
+    anchors or free points. The preconditioner is rebuilt at every step, from one product per
+    parameter of a block, made for all blocks at once (a camera's residuals depend on its own
+    parameters only, a residual on one point only).
     """
-    y0 = jax.lax.stop_gradient(y0)
-    args = jax.lax.stop_gradient(args)
-    _, push = jax.linearize(lambda y: _residuals(y, args), y0)
-    anchor_ids = args[9][0]
+
+    rtol: float
+    atol: float
+    anchor_ids: Array | None = None
+
+    def init(self, operator, options):
+        del options
+        operator = lx.linearise(operator)
+        return operator, _preconditioner(operator, self.anchor_ids)
+
+    def compute(self, state, vector, options):
+        del options
+        operator, M = state
+        preconditioned = lx.FunctionLinearOperator(
+            lambda z: operator.mv(_precondition(M, z)), operator.in_structure()
+        )
+        inner = lx.LSMR(rtol=self.rtol, atol=self.atol)
+        sol = lx.linear_solve(preconditioned, vector, inner, throw=False)
+        return _precondition(M, sol.value), sol.result, sol.stats
+
+    def transpose(self, state, options):
+        raise NotImplementedError("_BlockLSMR solves refine_rig's steps only")
+
+    def conj(self, state, options):
+        raise NotImplementedError("_BlockLSMR solves refine_rig's steps only")
+
+    def assume_full_rank(self):
+        return False
+
+
+def _preconditioner(operator, anchor_ids):
+    """`(W, follow)` of `_BlockLSMR` for the damped Jacobian `operator`: `y -> (J y, sqrt(lambda)
+    y)`, with `J y` the residuals' dict ("pixels" `(C, N, 2)`, "anchors" `(A, 3)`)."""
+    structure = operator.in_structure()
+    zeros = {name: jnp.zeros(x.shape, x.dtype) for name, x in structure.items()}
 
     def columns(name):
-        """The residuals' tangents for a unit step of each parameter of every block of `name`:
-        `(p, *residual shape)` for pixels and anchors."""
-        leaf = y0[name]
-        p = leaf.shape[-1]
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, y0)
-        tangent = lambda k: {**zeros, name: jnp.zeros_like(leaf).at[..., k].set(1.0)}  # noqa: E731
-        return jax.vmap(lambda k: push(tangent(k)))(jnp.arange(p))
+        """The operator's outputs `(p, ...)` for a unit step of each parameter `k < p` of every
+        block of `name` at once."""
+        unit = lambda k: {**zeros, name: zeros[name].at[..., k].set(1.0)}  # noqa: E731
+        return jax.vmap(lambda k: operator.mv(unit(k)))(jnp.arange(zeros[name].shape[-1]))
 
-    def gram(name):
-        t = columns(name)
-        pix = t["pixels"]  # (p, C, N, 2)
-        anchors = t.get("anchors")  # (p, A, 3)
-        if name == "cams":  # a block per camera
-            return jnp.einsum("kcnd,lcnd->ckl", pix, pix)
-        if name == "X":  # a block per point, whose anchor residual is its own too
-            G = jnp.einsum("kcnd,lcnd->nkl", pix, pix)
-            if anchors is not None:
-                G = G.at[anchor_ids].add(jnp.einsum("kad,lad->akl", anchors, anchors))
+    def products(name, a, b):
+        """`sum a_k b_l` over the outputs of each block of `name`: `(blocks, ka, kb)`, or
+        `(ka, kb)` for the global unknowns (summed over every output)."""
+        (res_a, damped_a), (res_b, damped_b) = a, b
+        if name == "cams":  # anchors do not depend on the cameras
+            return jnp.einsum("kcnd,lcnd->ckl", res_a["pixels"], res_b["pixels"]) + jnp.einsum(
+                "kcp,lcp->ckl", damped_a["cams"], damped_b["cams"]
+            )
+        if name == "X":  # a point's anchor residual is its own too
+            G = jnp.einsum("kcnd,lcnd->nkl", res_a["pixels"], res_b["pixels"])
+            G = G + jnp.einsum("knd,lnd->nkl", damped_a["X"], damped_b["X"])
+            if "anchors" in res_a:
+                G = G.at[anchor_ids].add(
+                    jnp.einsum("kad,lad->akl", res_a["anchors"], res_b["anchors"])
+                )
             return G
-        G = jnp.einsum("kcnd,lcnd->kl", pix, pix)  # one block
-        return G if anchors is None else G + jnp.einsum("kad,lad->kl", anchors, anchors)
+        pairs = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))
+        return sum(jnp.tensordot(x, y, axes=(tuple(range(1, x.ndim)),) * 2) for x, y in pairs)
 
-    # in units of the starting residuals' norm: a unit step of z changes the residuals by that
-    # much, so optimistix's initial damping (1) is small against J^T J (fewer steps measured)
-    r0 = jnp.sqrt(sum(jnp.sum(r * r) for r in jax.tree_util.tree_leaves(_residuals(y0, args))))
-    c = jnp.where(r0 > 0, r0, 1.0)
-    return {name: c * _inverse_cholesky_transpose(gram(name)) for name in y0}
+    cols = {name: columns(name) for name in structure}
+    global_names = [name for name in _GLOBAL if name in structure]
+    W, follow = {}, {}
+    schur = None
+    if global_names:
+        g = jax.tree_util.tree_map(
+            lambda *x: jnp.concatenate(x), *[cols[name] for name in global_names]
+        )
+        schur = products("global", g, g)
+    for name in _BLOCKED:
+        if name not in structure:
+            continue
+        W[name] = _inverse_cholesky_transpose(products(name, cols[name], cols[name]))
+        if schur is not None:
+            E = products(name, cols[name], g)  # (blocks, p, q)
+            B_inv_E = jnp.einsum("bkl,bml,bmq->bkq", W[name], W[name], E)
+            schur = schur - jnp.einsum("bkp,bkq->pq", E, B_inv_E)
+            follow[name] = -B_inv_E
+    if schur is not None:
+        W["global"] = _inverse_cholesky_transpose(schur)
+    return W, follow
+
+
+def _precondition(M, z):
+    """`M z` for the preconditioner `M = (W, follow)` of `_BlockLSMR`, block by block."""
+    W, follow = M
+    global_names = [name for name in _GLOBAL if name in z]
+    y = {}
+    if global_names:
+        sizes = [z[name].shape[0] for name in global_names]
+        y_g = W["global"] @ jnp.concatenate([z[name] for name in global_names])
+        y.update(zip(global_names, jnp.split(y_g, np.cumsum(sizes)[:-1])))
+    for name in _BLOCKED:
+        if name in z:
+            y[name] = jnp.einsum("bkl,bl->bk", W[name], z[name])
+            if name in follow:
+                y[name] = y[name] + jnp.einsum("bkq,q->bk", follow[name], y_g)
+    return y
 
 
 def _inverse_cholesky_transpose(G):
@@ -350,16 +418,6 @@ def _inverse_cholesky_transpose(G):
     W = Lt_inv / d[..., :, None]
     finite = jnp.all(jnp.isfinite(W), axis=(-2, -1), keepdims=True)
     return jnp.where(finite, W, eye / d[..., :, None])
-
-
-def _whitened(z, W):
-    """The unknowns `y = W z`, block by block."""
-    return {name: jnp.einsum("...kl,...l->...k", W[name], z[name]) for name in z}
-
-
-def _whitened_residuals(z, args_and_W):
-    args, W = args_and_W
-    return _residuals(_whitened(z, W), args)
 
 
 @eqx.filter_jit

@@ -1,6 +1,8 @@
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import pytest
 
@@ -171,7 +173,7 @@ def _matrix_free_cases():
 
 
 def test_matrix_free_solve_reaches_the_dense_optimum(monkeypatch):
-    # Large rigs are solved matrix-free (LSMR) on whitened unknowns. Without the whitening, LSMR
+    # Large rigs are solved matrix-free (LSMR, block-preconditioned). Unpreconditioned, LSMR
     # returned NaN after one step on the first two of these problems (distortion with anchors,
     # free points); here every one must reach the optimum of the dense solver (SecantLM).
     for name, args, kwargs in _matrix_free_cases():
@@ -190,30 +192,47 @@ def test_matrix_free_solve_reaches_the_dense_optimum(monkeypatch):
         np.testing.assert_allclose(free.transform.t, dense.transform.t, atol=1e-7)
 
 
-def test_whitening_makes_every_block_of_the_normal_matrix_the_identity(monkeypatch):
-    # J^T J of the whitened unknowns, from the full Jacobian by autodiff: c^2 times the identity
-    # on each camera's block and on the placement's (c: the starting residuals' norm), up to
-    # the 1e-12 ridge that keeps the factorisation definite, times the blocks' conditioning
+def test_block_preconditioner_makes_the_step_normal_matrix_the_identity_per_block(monkeypatch):
+    # The matrix-free step solves [J; sqrt(lambda) I] dy = [r; 0] by LSMR on dy = M dz: with the
+    # preconditioner M, the normal matrix of dz is the identity on each camera's block and on
+    # the placement's, and the two do not couple (the Schur complement); the full Jacobian here
+    # by autodiff, from the problem refine_rig builds
     _, args, kwargs = next(_matrix_free_cases())
     captured = {}
 
     def spy(fn, args, y0, solver, max_steps):
-        captured.update(args=args, y0=y0)
+        captured.update(args=args, y0=y0, solver=solver)
         raise StopIteration
 
     monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)
     monkeypatch.setattr(mc._bundle, "_solve", spy)
     with pytest.raises(StopIteration):
         mc.refine_rig(*args, distortion=("k1",), **kwargs)
-    problem, W = captured["args"]
-    z0 = captured["y0"]
-    J = jax.jacfwd(lambda z: mc._bundle._whitened_residuals(z, (problem, W)))(z0)
-    residuals = mc._bundle._residuals(mc._bundle._whitened(z0, W), problem)
-    c2 = sum(float(jnp.sum(r * r)) for r in jax.tree_util.tree_leaves(residuals))
-    C, p = z0["cams"].shape
-    cams = np.asarray(J["pixels"]["cams"])  # (C, N, 2, C, p): a camera's residuals, its columns
-    for c in range(C):
-        Jc = cams[:, :, :, c, :].reshape(-1, p)
-        np.testing.assert_allclose(Jc.T @ Jc / c2, np.eye(p), atol=1e-7)
-    JT = np.concatenate([np.asarray(J[k]["T"]).reshape(-1, 6) for k in ("pixels", "anchors")])
-    np.testing.assert_allclose(JT.T @ JT / c2, np.eye(6), atol=1e-7)
+    problem, y0 = captured["args"], captured["y0"]
+    linear_solver = captured["solver"].descent.linear_solver
+    assert isinstance(linear_solver, mc._bundle._BlockLSMR)
+    lam = 0.3
+    _, jvp = jax.linearize(lambda y: mc._bundle._residuals(y, problem), y0)
+    damped = lambda y: (jvp(y), jax.tree_util.tree_map(lambda x: np.sqrt(lam) * x, y))  # noqa: E731
+    operator = lx.FunctionLinearOperator(damped, jax.eval_shape(lambda: y0))
+    M = mc._bundle._preconditioner(operator, linear_solver.anchor_ids)
+    flat, unravel = jax.flatten_util.ravel_pytree(y0)
+    A = jax.jacfwd(
+        lambda z: jax.flatten_util.ravel_pytree(damped(mc._bundle._precondition(M, unravel(z))))[0]
+    )(flat)
+    N = np.asarray(A.T @ A)
+    C, p = y0["cams"].shape
+    cams = [slice(c * p, (c + 1) * p) for c in range(C)]  # ravel_pytree: "T" after "cams"
+    placement = slice(C * p, C * p + 6)
+    for block in cams + [placement]:
+        np.testing.assert_allclose(N[block, block], np.eye(N[block, block].shape[0]), atol=1e-7)
+    for block in cams:
+        np.testing.assert_allclose(N[block, placement], 0.0, atol=1e-7)
+    # and the step it solves for is the damped Gauss-Newton step
+    r = mc._bundle._residuals(y0, problem)
+    sol = lx.linear_solve(operator, (r, jax.tree_util.tree_map(jnp.zeros_like, y0)), linear_solver)
+    J = jax.jacfwd(lambda z: jax.flatten_util.ravel_pytree(jvp(unravel(z)))[0])(flat)
+    r_flat = jax.flatten_util.ravel_pytree(r)[0]
+    expected = np.linalg.solve(J.T @ J + lam * np.eye(len(flat)), J.T @ r_flat)
+    step = jax.flatten_util.ravel_pytree(sol.value)[0]
+    np.testing.assert_allclose(step, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
