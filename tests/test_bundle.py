@@ -32,15 +32,21 @@ def zero_skew(c):
     return eqx.tree_at(lambda c: c.skew, c, jnp.zeros_like(c.skew))
 
 
-def test_joint_rig_with_registration_equals_refine_plus_procrustes():
+def anchored_rig():
+    """A rig, its target's placement from noisy measured anchors (Procrustes), and the DLT seed
+    in the global frame: (rig, seed, T, anchors)."""
     target, rig = grid_rig(0, 6)
     rng = np.random.default_rng(0)
     measured = target.global_points + rng.normal(scale=0.2, size=target.global_points.shape)
     ids = np.arange(0, len(target.points), 4)
     T = mc.procrustes(target.points[ids], measured[ids])
+    seed = mc.to_global(zero_skew(mc.calibrate(rig.world, rig.pixels, rig.mask).cameras), T)
+    return rig, seed, T, (ids, measured[ids])
+
+
+def test_joint_rig_with_registration_equals_refine_plus_procrustes():
+    rig, seed, T, anchors = anchored_rig()
     cal = mc.calibrate(rig.world, rig.pixels, rig.mask)
-    seed = mc.to_global(zero_skew(cal.cameras), T)
-    anchors = (ids, measured[ids])
     joint = mc.refine_rig(seed, rig.world, rig.pixels, rig.mask, transform=T, anchors=anchors,
                           anchor_sigma=0.2, distortion=())  # fmt: skip
     alone = mc.refine(zero_skew(cal.cameras), rig.world, rig.pixels, rig.mask, distortion=())
@@ -147,18 +153,14 @@ def test_bundle_adjust_and_aniposelib_files_refuse_bad_input(tmp_path):
 
 def _matrix_free_cases():
     """The three joint problems above, with radial distortion: (name, arguments, keywords)."""
-    target, rig = grid_rig(0, 6)
-    rng = np.random.default_rng(0)
-    measured = target.global_points + rng.normal(scale=0.2, size=target.global_points.shape)
-    ids = np.arange(0, len(target.points), 4)
-    T = mc.procrustes(target.points[ids], measured[ids])
-    seed = mc.to_global(zero_skew(mc.calibrate(rig.world, rig.pixels, rig.mask).cameras), T)
+    rig, seed, T, anchors = anchored_rig()
     yield (
         "anchors",
         (seed, rig.world, rig.pixels, rig.mask),
-        dict(transform=T, anchors=(ids, measured[ids]), anchor_sigma=0.2),
+        dict(transform=T, anchors=anchors, anchor_sigma=0.2),
     )
     target, rig = grid_rig(1, 8)
+    rng = np.random.default_rng(1)
     rough = np.asarray(rig.world) + rng.normal(scale=0.5, size=rig.world.shape)
     seed = zero_skew(mc.calibrate(rough, rig.pixels, rig.mask).cameras)
     ids = np.arange(0, len(target.points), 5)
