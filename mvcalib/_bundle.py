@@ -292,7 +292,10 @@ class _BlockLSMR(lx.AbstractLinearSolver):
     and `dy_b = W_b dz_b - B^-1 E dy_g`, `W = L^-T` from the Cholesky factor `L` of `B` (of `S`
     for the global part): a block moves with the global unknowns so that its residuals stay
     put, which is what separates the placement from the cameras' poses that explain the images
-    equally well. (Cameras and free points stay coupled: there the preconditioner is per block.)
+    equally well. With free points (bundle adjustment) the points follow the cameras instead
+    (`dy_X = W_X dz_X - B_X^-1 E^T dy_c`, the Schur complement on the points, whose diagonal
+    camera blocks whiten the cameras; cameras that share points stay coupled there) and shared
+    intrinsics are whitened by their own block.
 
     LSMR's iterations grow with the condition number of its operator, which the correlations
     within a camera's parameters (focal length against distance, distortion coefficients) and
@@ -373,15 +376,29 @@ def _preconditioner(operator, anchor_ids):
             lambda *x: jnp.concatenate(x), *[cols[name] for name in global_names]
         )
         schur = products("global", g, g)
-    for name in _BLOCKED:
-        if name not in structure:
-            continue
-        W[name] = _inverse_cholesky_transpose(products(name, cols[name], cols[name]))
-        if schur is not None:
-            E = products(name, cols[name], g)  # (blocks, p, q)
-            B_inv_E = jnp.einsum("bkl,bml,bmq->bkq", W[name], W[name], E)
-            schur = schur - jnp.einsum("bkp,bkq->pq", E, B_inv_E)
-            follow[name] = -B_inv_E
+    if "X" in structure:
+        # bundle adjustment: each point follows the cameras that see it (the Schur complement
+        # on the points), each camera whitened by its diagonal block of that complement; the
+        # shared intrinsics, if any, by their own block only
+        W["X"] = _inverse_cholesky_transpose(products("X", cols["X"], cols["X"]))
+        B_inv = jnp.einsum("nkl,nml->nkm", W["X"], W["X"])
+        pix_c, pix_X = cols["cams"][0]["pixels"], cols["X"][0]["pixels"]
+        E = jnp.einsum("kcnd,lcnd->cnkl", pix_c, pix_X)  # (C, N, p, 3): camera-point coupling
+        B_inv_Et = jnp.einsum("nlm,cnkm->cnlk", B_inv, E)
+        camera_schur = products("cams", cols["cams"], cols["cams"])
+        camera_schur = camera_schur - jnp.einsum("cnkl,cnlq->ckq", E, B_inv_Et)
+        W["cams"] = _inverse_cholesky_transpose(camera_schur)
+        follow["X_cams"] = -B_inv_Et
+    else:
+        for name in _BLOCKED:
+            if name not in structure:
+                continue
+            W[name] = _inverse_cholesky_transpose(products(name, cols[name], cols[name]))
+            if schur is not None:
+                E = products(name, cols[name], g)  # (blocks, p, q)
+                B_inv_E = jnp.einsum("bkl,bml,bmq->bkq", W[name], W[name], E)
+                schur = schur - jnp.einsum("bkp,bkq->pq", E, B_inv_E)
+                follow[name] = -B_inv_E
     if schur is not None:
         W["global"] = _inverse_cholesky_transpose(schur)
     return W, follow
@@ -396,11 +413,13 @@ def _precondition(M, z):
         sizes = [z[name].shape[0] for name in global_names]
         y_g = W["global"] @ jnp.concatenate([z[name] for name in global_names])
         y.update(zip(global_names, jnp.split(y_g, np.cumsum(sizes)[:-1])))
-    for name in _BLOCKED:
+    for name in _BLOCKED:  # the cameras first: points follow them
         if name in z:
             y[name] = jnp.einsum("bkl,bl->bk", W[name], z[name])
             if name in follow:
                 y[name] = y[name] + jnp.einsum("bkq,q->bk", follow[name], y_g)
+    if "X_cams" in follow:
+        y["X"] = y["X"] + jnp.einsum("cnlk,ck->nl", follow["X_cams"], y["cams"])
     return y
 
 

@@ -194,12 +194,15 @@ def test_matrix_free_solve_reaches_the_dense_optimum(monkeypatch):
         np.testing.assert_allclose(free.transform.t, dense.transform.t, atol=1e-7)
 
 
-def test_block_preconditioner_makes_the_step_normal_matrix_the_identity_per_block(monkeypatch):
-    # The matrix-free step solves [J; sqrt(lambda) I] dy = [r; 0] by LSMR on dy = M dz: with the
-    # preconditioner M, the normal matrix of dz is the identity on each camera's block and on
-    # the placement's, and the two do not couple (the Schur complement); the full Jacobian here
-    # by autodiff, from the problem refine_rig builds
-    _, args, kwargs = next(_matrix_free_cases())
+@pytest.mark.parametrize("case", ["anchors", "free points"])
+def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
+    # The matrix-free step solves [J; sqrt(lambda) I] dy = [r; 0] by LSMR on dy = M dz. With
+    # anchors, the normal matrix of dz is the identity (each camera's block, and the placement's
+    # through its Schur complement with the cameras following it). With free points, the points
+    # follow the cameras: identity on every point's block and every camera's, no camera-point
+    # coupling (cameras that share points stay coupled). The full Jacobian here by autodiff, of
+    # the problem refine_rig builds; and the step solved is the damped Gauss-Newton step.
+    args, kwargs = next((a, k) for name, a, k in _matrix_free_cases() if name == case)
     captured = {}
 
     def spy(fn, args, y0, solver, max_steps):
@@ -223,14 +226,16 @@ def test_block_preconditioner_makes_the_step_normal_matrix_the_identity_per_bloc
         lambda z: jax.flatten_util.ravel_pytree(damped(mc._bundle._precondition(M, unravel(z))))[0]
     )(flat)
     N = np.asarray(A.T @ A)
-    C, p = y0["cams"].shape
-    cams = [slice(c * p, (c + 1) * p) for c in range(C)]  # ravel_pytree: "T" after "cams"
-    placement = slice(C * p, C * p + 6)
-    for block in cams + [placement]:
-        np.testing.assert_allclose(N[block, block], np.eye(N[block, block].shape[0]), atol=1e-7)
-    for block in cams:
-        np.testing.assert_allclose(N[block, placement], 0.0, atol=1e-7)
-    # and the step it solves for is the damped Gauss-Newton step
+    if case == "anchors":
+        np.testing.assert_allclose(N, np.eye(len(N)), atol=1e-7)
+    else:  # ravel_pytree orders the keys: "X" before "cams"
+        n_X = y0["X"].size
+        C, p = y0["cams"].shape
+        np.testing.assert_allclose(N[:n_X, :], np.eye(len(N))[:n_X, :], atol=1e-7)
+        for c in range(C):
+            block = slice(n_X + c * p, n_X + (c + 1) * p)
+            np.testing.assert_allclose(N[block, block], np.eye(p), atol=1e-7)
+        assert np.abs(N[n_X:, n_X:] - np.eye(C * p)).max() > 0.01  # coupled through the points
     r = mc._bundle._residuals(y0, problem)
     sol = lx.linear_solve(operator, (r, jax.tree_util.tree_map(jnp.zeros_like, y0)), linear_solver)
     J = jax.jacfwd(lambda z: jax.flatten_util.ravel_pytree(jvp(unravel(z)))[0])(flat)
