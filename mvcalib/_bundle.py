@@ -263,14 +263,16 @@ def default_solver(
 
     Matrix-free, optimistix's LM solves each step by LSMR (Jacobian-vector products only),
     which is what lets 64 cameras x 10k residuals run in under 1 GB, preconditioned block by
-    block (`_BlockLSMR`; `anchor_ids`: `refine_rig`'s anchored points). Its steps are inexact at
-    ~1e-12, so the tolerance is 1e-8 (same optimum, measured).
+    block (`_BlockLSMR`; `anchor_ids`: `refine_rig`'s anchored points). The tolerance is 1e-7:
+    optimistix's LM tests convergence on accepted steps only, and at the optimum a trial loses
+    to rounding; at 1e-8 it then shrank the step until a trial won, 15 rejected steps of 19 on
+    64 cameras x 10k residuals (4 steps at 1e-7, RMS the same to 5e-15).
     """
     if n_residuals * n_parameters <= DENSE_LIMIT:
         if dtype == jnp.float64:
             return SecantLM(rtol=1e-5)
         return optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)
-    tol = 1e-8 if dtype == jnp.float64 else 1e-5
+    tol = 1e-7 if dtype == jnp.float64 else 1e-5
     return optx.LevenbergMarquardt(
         rtol=tol, atol=tol, linear_solver=_BlockLSMR(rtol=1e-12, atol=1e-12, anchor_ids=anchor_ids)
     )
