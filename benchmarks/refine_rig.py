@@ -12,9 +12,9 @@ distortion held fixed; the target's points known and fixed, no anchors). A camer
 depend on its own parameters only, so the Jacobian is block diagonal: C blocks of 10 columns.
 
 - **mvcalib**: the public `mvcalib.refine_rig(seed, world, pixels, mask, distortion=())` with its
-  defaults; at this size (645k residuals x 640 unknowns) that is matrix-free LM, each step
-  solved by LSMR on Jacobian-vector products, preconditioned per camera
-  (`mvcalib._bundle.default_solver`, `_BlockLSMR`). Each call
+  defaults; for a rig of more than a few cameras (here 645k residuals x 640 unknowns) that is
+  matrix-free LM, each step solved by LSMR on Jacobian-vector products, preconditioned per
+  camera (`mvcalib._bundle.default_solver`, `_BlockLSMR`). Each call
   ends with `jax.block_until_ready` on the returned `RigRefinement`. Two calls on the same
   inputs: the first (trace + compile + run) and a warm second one.
 - **scipy**: one `scipy.optimize.least_squares` call over all cameras jointly, x = the
@@ -57,8 +57,7 @@ residual and Jacobian evaluations (`nfev`, `njev`). Peak memory: the process's p
 (`ru_maxrss`) after mvcalib's two calls, and after SciPy's call (before the checks of its
 Jacobian, which build `block_diag`).
 
-`--quick`: 16 cameras x grid 12 (432 dots, 864 residuals per camera; small enough that mvcalib
-solves it by dense LM instead).
+`--quick`: 16 cameras x grid 12 (432 dots, 864 residuals per camera).
 
 The results are printed and written to `benchmarks/results/refine_rig.json`.
 

@@ -181,6 +181,7 @@ def test_matrix_free_solve_reaches_the_dense_optimum(monkeypatch):
     for name, args, kwargs in _matrix_free_cases():
         dense = mc.refine_rig(*args, distortion=("k1", "k2"), **kwargs)
         monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)  # every problem is "large"
+        monkeypatch.setattr(mc._bundle, "TARGET_DENSE_LIMIT", 0)
         free = mc.refine_rig(*args, distortion=("k1", "k2"), **kwargs)
         monkeypatch.undo()
         assert bool(dense.ok) and bool(free.ok), (name, dense.messages(), free.messages())
@@ -210,6 +211,7 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
         raise StopIteration
 
     monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)
+    monkeypatch.setattr(mc._bundle, "TARGET_DENSE_LIMIT", 0)
     monkeypatch.setattr(mc._bundle, "_solve", spy)
     with pytest.raises(StopIteration):
         mc.refine_rig(*args, distortion=("k1",), **kwargs)
@@ -243,3 +245,19 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
     expected = np.linalg.solve(J.T @ J + lam * np.eye(len(flat)), J.T @ r_flat)
     step = jax.flatten_util.ravel_pytree(sol.value)[0]
     np.testing.assert_allclose(step, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def test_default_solver_is_dense_for_small_problems_and_bundle_adjustment():
+    def matrix_free(n_residuals, n_parameters, free_points):
+        solver = mc._bundle.default_solver(
+            jnp.float64, n_residuals, n_parameters, free_points=free_points
+        )
+        if isinstance(solver, mc.SecantLM):
+            return False
+        assert isinstance(solver.descent.linear_solver, mc._bundle._BlockLSMR)
+        return True
+
+    assert not matrix_free(900, 78, free_points=False)  # 6 cameras of 75 points
+    assert matrix_free(27_648, 390, free_points=False)  # 32 cameras of 432 points: 14x faster
+    assert not matrix_free(3_600, 618, free_points=True)  # bundle adjustment: SecantLM's steps
+    assert matrix_free(645_434, 640 + 15_129, free_points=True)  # beyond memory

@@ -477,7 +477,7 @@ def test_refine_rig_matrix_free_gradient_equals_the_dense_one(monkeypatch):
         return jnp.vdot(w, jnp.stack([c.alpha_u[1], c.dist[0, 0], c.t[2, 2]]))
 
     dense = jax.grad(f)(rig.pixels)
-    monkeypatch.setattr(mc._bundle, "DENSE_LIMIT", 0)  # the matrix-free path
+    monkeypatch.setattr(mc._bundle, "TARGET_DENSE_LIMIT", 0)  # the matrix-free path
     free = jax.grad(f)(rig.pixels)
     assert np.isfinite(np.asarray(free)).all()
     np.testing.assert_allclose(free, dense, atol=1e-6 * float(jnp.max(jnp.abs(dense))))
