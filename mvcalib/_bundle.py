@@ -127,9 +127,10 @@ def refine_rig(
     residuals are every camera's reprojection errors of the placed points and, when `anchors`
     are given, the distances between placed anchor points and their measured global
     coordinates (in units of `anchor_sigma`), so the cameras, the registration and (with
-    `points="free"`) the 3-D points are estimated together, consistently. Problems whose
-    Jacobian is too large for a dense QR step are solved matrix-free (LSMR on Jacobian-vector
-    products), so large rigs fit in memory (see `default_solver`).
+    `points="free"`) the 3-D points are estimated together, consistently. Rigs of more than a
+    few cameras with a known target, and bundle adjustments whose Jacobian is too large for a
+    dense step, are solved matrix-free (LSMR steps on Jacobian-vector products, preconditioned
+    per camera and point; see `default_solver`), so large rigs fit in memory.
 
     **Arguments:**
 
