@@ -84,8 +84,10 @@ from scipy.optimize import least_squares  # noqa: E402
 
 try:
     from . import refine
+    from ._common import first_and_warm
 except ImportError:  # run as a script
     import refine
+    from _common import first_and_warm
 
 import mvcalib as mc  # noqa: E402
 
@@ -173,13 +175,10 @@ def main() -> None:
     seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros(C))
 
     def mvcalib_call():
-        start = time.perf_counter()
         out = mc.refine_rig(seed, rig.world, rig.pixels, rig.mask, distortion=())
-        jax.block_until_ready(out)
-        return out, time.perf_counter() - start
+        return jax.block_until_ready(out)
 
-    out, seconds = mvcalib_call()
-    out, warm_seconds = mvcalib_call()
+    seconds, warm_seconds, out = first_and_warm(mvcalib_call, warm_calls=1)
     mvcalib_peak = peak_rss_mb()
 
     cams, x0, structure = scipy_rig_inputs(rig.world, rig.pixels, rig.mask, seed)
