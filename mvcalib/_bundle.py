@@ -16,7 +16,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _triangulate, _validate
+from . import _sharding, _small, _triangulate, _validate
 from ._camera import Camera
 from ._refine import (
     _RESULT_MESSAGES,
@@ -448,12 +448,29 @@ def _inverse_cholesky_transpose(G):
     d = jnp.where(d > 0, d, 1.0)
     p = G.shape[-1]
     correlation = G / (d[..., :, None] * d[..., None, :]) + 1e-12 * jnp.eye(p, dtype=G.dtype)
-    L = jnp.linalg.cholesky(correlation)
-    eye = jnp.broadcast_to(jnp.eye(p, dtype=G.dtype), G.shape)
-    Lt_inv = jax.scipy.linalg.solve_triangular(L, eye, lower=True, trans=1)
+    Lt_inv = _inverse_cholesky_factor_transpose(correlation)
     W = Lt_inv / d[..., :, None]
+    eye = jnp.broadcast_to(jnp.eye(p, dtype=G.dtype), G.shape)
     finite = jnp.all(jnp.isfinite(W), axis=(-2, -1), keepdims=True)
     return jnp.where(finite, W, eye / d[..., :, None])
+
+
+def _inverse_cholesky_factor_transpose(A):
+    """`L^-T` for the Cholesky factor `L` of `A (..., p, p)` (NaN or inf where `A` is not
+    definite): by LAPACK, or, where a batch of LAPACK calls can hang (`_sharding`; 1024 cameras
+    split over 2 host devices did, in the first step), written out entry by entry (`_small`; on
+    one device that costs 6 s more to compile, and ~10 % more a step, on 32 anchored cameras
+    with distortion)."""
+    p = A.shape[-1]
+    if not _sharding.batched_lapack_may_hang():
+        eye = jnp.broadcast_to(jnp.eye(p, dtype=A.dtype), A.shape)
+        return jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(A), eye, lower=True, trans=1)
+    rows = [[A[..., i, j] for j in range(p)] for i in range(p)]
+    X = _small.lower_inverse(_small.cholesky(rows, 0.0))  # a pivot <= 0 gives inf, or NaN
+    zero = jnp.zeros_like(A[..., 0, 0])
+    return jnp.stack(
+        [jnp.stack([X[j][i] if j >= i else zero for j in range(p)], -1) for i in range(p)], -2
+    )
 
 
 @eqx.filter_jit

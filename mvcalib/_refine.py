@@ -271,7 +271,7 @@ def _definite_solve(M, B):
     """`M^-1 B` for a symmetric `M (n, n)` and `B (n, m)`, NaN unless `M` is positive definite:
     by LAPACK's Cholesky, or by `_spd_solve` where a batch of LAPACK calls can deadlock (several
     CPU devices), at the price of a slower solve there."""
-    if jax.default_backend() == "cpu" and jax.device_count() > 1:
+    if _sharding.batched_lapack_may_hang():
         return _spd_solve(M, B)
     return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), B)
 

@@ -130,6 +130,14 @@ def cpu_chunk(n: int, size: int) -> int | None:
     return size
 
 
+def batched_lapack_may_hang() -> bool:
+    """Whether a batch of LAPACK factorisations could hang here: on several CPU devices, jaxlib
+    runs each device's batch through XLA's CPU thread pool, and when every device's program calls
+    one at once, each holds a worker and waits for sub-tasks queued behind the others'
+    (docs/scaling.md). Small solves are then written out, without LAPACK."""
+    return jax.default_backend() == "cpu" and jax.device_count() > 1
+
+
 def chunked_map(fn, inputs: tuple, size: int | None, *, axis: int = 0):
     """`fn(*inputs)` for a `fn` batched along `axis` of every input array and along the leading
     axis of every output, run as a `lax.map` over equal chunks of at most `size` entries (all at

@@ -41,6 +41,18 @@ def cho_solve(L, b):
     return x
 
 
+def lower_inverse(L):
+    """The rows of `L^-1` for a lower triangular `L` (rows of entries), `None` above the
+    diagonal."""
+    n = len(L)
+    X = [[None] * n for _ in range(n)]
+    for j in range(n):
+        X[j][j] = 1.0 / L[j][j]
+        for i in range(j + 1, n):
+            X[i][j] = -sum(L[i][k] * X[k][j] for k in range(j, i)) / L[i][i]
+    return X
+
+
 def normalised(x):
     """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
     if isinstance(x, list):

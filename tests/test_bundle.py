@@ -261,3 +261,22 @@ def test_default_solver_is_dense_for_small_problems_and_bundle_adjustment():
     assert matrix_free(27_648, 390, free_points=False)  # 32 cameras of 432 points: 14x faster
     assert not matrix_free(3_600, 618, free_points=True)  # bundle adjustment: SecantLM's steps
     assert matrix_free(645_434, 640 + 15_129, free_points=True)  # beyond memory
+
+
+@pytest.mark.parametrize("p", [3, 6, 14])
+def test_the_preconditioner_blocks_written_out_equal_lapacks(monkeypatch, p):
+    # Where batched LAPACK can hang (several CPU devices) the blocks' inverse Cholesky factors
+    # are written out entry by entry; they must be the same, down to the fallbacks.
+    rng = np.random.default_rng(p)
+    A = rng.normal(size=(6, p, 3 * p)) * np.logspace(-3, 3, p)[:, None]
+    G = A @ np.swapaxes(A, -1, -2)
+    G[1] = 0.0  # a block of parameters with no effect
+    G[2, 0, :] = G[2, :, 0] = 0.0  # one parameter without effect
+    G[3] = -np.eye(p)  # not definite
+    G = jnp.asarray(G)
+    lapack = mc._bundle._inverse_cholesky_transpose(G)
+    monkeypatch.setattr(mc._bundle._sharding, "batched_lapack_may_hang", lambda: True)
+    written = mc._bundle._inverse_cholesky_transpose(G)
+    np.testing.assert_allclose(written, lapack, rtol=1e-9, atol=0)
+    WtGW = np.einsum("bki,bkl,blj->bij", written, G, written)
+    np.testing.assert_allclose(WtGW[[0, 4, 5]], np.broadcast_to(np.eye(p), (3, p, p)), atol=1e-9)

@@ -220,6 +220,24 @@ def test_shard_refuses_what_is_not_a_mesh():
         mc.shard(np.zeros(4), mesh=jax.devices())
 
 
+def _run_on_two_host_devices(code: str, timeout: float) -> str:
+    """The standard output of `code` run in a fresh process with 2 host devices."""
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        JAX_ENABLE_X64="1",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=os.pathsep.join(
+            [str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]
+        ),
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=timeout
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return proc.stdout
+
+
 def test_refinement_of_a_large_rig_split_over_host_devices_finishes():
     # 1024 cameras over 2 host devices: with LAPACK's batched kernels (the covariance's `getrf`
     # from 256 cameras, the step's `potrf`/`trsm` at 1024) both of XLA's CPU workers waited in
@@ -233,18 +251,29 @@ seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
 out = mc.refine(*mc.shard((seed,)), world, *mc.shard((pixels, mask)))
 print(len(out.ok.sharding.device_set), int(out.ok.sum()), float(jnp.max(out.rms_after)))
 """
-    env = dict(
-        os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=2",
-        JAX_ENABLE_X64="1",
-        JAX_PLATFORMS="cpu",
-        PYTHONPATH=os.pathsep.join(
-            [str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]
-        ),
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=240
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    devices, ok, rms = proc.stdout.split()
+    devices, ok, rms = _run_on_two_host_devices(code, timeout=240).split()
     assert (int(devices), int(ok)) == (2, 1024) and float(rms) < 1.0
+
+
+def test_a_joint_rig_refinement_split_over_host_devices_finishes_and_agrees():
+    # 256 anchored cameras with distortion, split over 2 host devices: the matrix-free step's
+    # preconditioner factorised each camera's block by LAPACK's batched Cholesky, and the call
+    # never returned (from 256 cameras of 48 points; 128 finished). It is written out there now.
+    code = """
+import jax, jax.numpy as jnp, equinox as eqx, numpy as np, mvcalib as mc
+C = 256
+rig = mc.synthetic.random_rig(jax.random.key(1), C, target=mc.targets.box_corner_grid(4),
+                              noise=0.3, fill=(0.8, 0.95))
+seed = mc.calibrate(rig.world, rig.pixels, rig.mask).cameras
+seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros(C))
+ids = np.arange(0, 48, 5)
+kw = dict(anchors=(ids, np.asarray(rig.world)[ids]), distortion=("k1", "k2"))
+one = mc.refine_rig(seed, rig.world, rig.pixels, rig.mask, **kw)
+s_seed, s_pixels, s_mask = mc.shard((seed, rig.pixels, rig.mask))
+two = mc.refine_rig(s_seed, rig.world, s_pixels, s_mask, **kw)
+rel = float(jnp.max(jnp.abs(two.rms_after - one.rms_after) / one.rms_after))
+print(len(two.cameras.alpha_u.sharding.device_set), bool(one.ok), bool(two.ok), rel)
+"""
+    devices, ok_one, ok_two, rel = _run_on_two_host_devices(code, timeout=300).split()
+    assert (int(devices), ok_one, ok_two) == (2, "True", "True")
+    assert float(rel) < 1e-9
