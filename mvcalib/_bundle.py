@@ -17,7 +17,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _triangulate, _validate
-from ._camera import Camera
+from ._camera import Camera, finite_cameras, usable_rig, where_cameras
 from ._refine import (
     _RESULT_MESSAGES,
     DISTORTION,
@@ -54,6 +54,8 @@ class RigRefinement(eqx.Module):
     - `anchor_rms`: RMS distance (world units) between the placed anchor points and their
       measured global coordinates, after refinement (NaN without anchors).
     - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful), `ok`, `messages()`.
+    - `used`: `(C,)` the cameras that took part, those with a finite seed; the others (e.g.
+      cameras `calibrate` could not solve) are NaN in `cameras`, `rms_before` and `rms_after`.
     """
 
     cameras: Camera
@@ -64,13 +66,21 @@ class RigRefinement(eqx.Module):
     anchor_rms: Float[Array, ""]
     iterations: Int[Array, ""]
     result: Int[Array, ""]
+    used: Bool[Array, " C"]
 
     @property
     def ok(self) -> Bool[Array, ""]:
         return self.result == 0
 
     def messages(self) -> str:
-        return _RESULT_MESSAGES[int(self.result)]
+        message = _RESULT_MESSAGES[int(self.result)]
+        unused = np.flatnonzero(~np.asarray(self.used))
+        if len(unused):
+            message = (
+                f"{message.rstrip('.')}; cameras {unused.tolist()} took no part (their seeds "
+                "are not finite)"
+            )
+        return message
 
 
 def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0):
@@ -89,7 +99,7 @@ def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0):
 
 
 def _residuals(y, args):
-    (p0, R0, scale, free, shared_free, T0, world0, pixels, mask, anchors, loss) = args
+    (p0, R0, scale, free, shared_free, T0, world0, pixels, mask, anchors, loss, pinned) = args
     anchor_ids, anchor_xyz, anchor_sigma = anchors
     cams, T, world = _unknowns(y, p0, R0, scale, free, shared_free, T0, world0)
     placed = T.apply(world)
@@ -99,6 +109,9 @@ def _residuals(y, args):
     out = {"pixels": r}
     if anchor_ids is not None:
         out["anchors"] = (placed[anchor_ids] - anchor_xyz) / anchor_sigma
+    # A camera that sees no point has parameters that no residual determines: held at the seed,
+    # so that the problem stays well posed (implicit derivatives solve with its Jacobian).
+    out["pinned"] = jnp.where(pinned[:, None], y["cams"], 0.0)
     return out
 
 
@@ -135,6 +148,8 @@ def refine_rig(
     **Arguments:**
 
     - `cameras`: the rig `(C,)` in the global frame, e.g. `to_global(calibrate(...).cameras, T)`.
+      A camera with a non-finite parameter (one that `calibrate` could not solve is NaN) takes
+      no part and comes back NaN (`RigRefinement.used`); one that sees no point keeps its seed.
     - `world`: `(N, 3)` points in the local frame (starting values if `points="free"`).
     - `pixels`, `mask`: `(C, N, 2)` observations and `(C, N)` visibility.
     - `transform`: starting local-to-global placement (e.g. from `procrustes`).
@@ -193,7 +208,13 @@ def refine_rig(
     shared_free = tuple(i for i in free if shared and i in _INTRINSICS)
 
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
-    if shared:  # every camera starts from camera 0's intrinsics
+    # A camera without a finite seed (one that `calibrate` could not solve is NaN) takes no
+    # part: its points are hidden and its seed replaced by the first usable camera's, so that no
+    # NaN reaches the others (it did: the whole rig failed); it comes back NaN.
+    cameras, mask, used = usable_rig(cameras, mask)
+    if _validate.is_concrete(used) and not np.any(np.asarray(used)):
+        raise ValueError("no camera of the rig has a finite seed (all parameters finite).")
+    if shared:  # every camera starts from the first usable camera's intrinsics
         cameras = _with_intrinsics_of(cameras, 0)
     p0 = jax.vmap(_pack)(cameras)
     scale = jax.vmap(_scales)(p0)
@@ -215,7 +236,7 @@ def refine_rig(
     free_idx = jnp.asarray(cam_free, dtype=int)
     shared_idx = jnp.asarray(shared_free, dtype=int)
     args = (p0, cameras.R, scale, free_idx, shared_idx, transform, world, pixels, mask,
-            anchors_arg, loss)  # fmt: skip
+            anchors_arg, loss, ~jnp.any(mask, axis=1))  # fmt: skip
     if solver is None:
         n_anchor = 0 if anchor_ids is None else len(anchor_ids)
         n_params = sum(x.size for x in y0.values())
@@ -231,8 +252,10 @@ def refine_rig(
     refined, placement, new_world = _unknowns(
         sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
     )
-    before = masked_rms(cameras, transform.apply(world), pixels, mask)
-    after = masked_rms(refined, placement.apply(new_world), pixels, mask)
+    nan = jnp.asarray(jnp.nan, dtype)
+    before = jnp.where(used, masked_rms(cameras, transform.apply(world), pixels, mask), nan)
+    after = jnp.where(used, masked_rms(refined, placement.apply(new_world), pixels, mask), nan)
+    refined = where_cameras(used, refined, jax.tree_util.tree_map(lambda x: nan, refined))
     if anchor_ids is None:
         anchor_rms = jnp.asarray(jnp.nan, dtype)
     else:
@@ -247,6 +270,7 @@ def refine_rig(
         anchor_rms=anchor_rms,
         iterations=sol.stats["num_steps"],
         result=sol.result._value,  # noqa: SLF001
+        used=used,
     )
 
 
@@ -355,7 +379,8 @@ class _BlockLSMR(lx.AbstractLinearSolver):
 
 def _preconditioner(operator, anchor_ids):
     """`(W, follow)` of `_BlockLSMR` for the damped Jacobian `operator`: `y -> (J y, sqrt(lambda)
-    y)`, with `J y` the residuals' dict ("pixels" `(C, N, 2)`, "anchors" `(A, 3)`)."""
+    y)`, with `J y` the residuals' dict ("pixels" `(C, N, 2)`, "anchors" `(A, 3)`,
+    "pinned" `(C, p)`)."""
     structure = operator.in_structure()
     zeros = {name: jnp.zeros(x.shape, x.dtype) for name, x in structure.items()}
 
@@ -370,8 +395,11 @@ def _preconditioner(operator, anchor_ids):
         `(ka, kb)` for the global unknowns (summed over every output)."""
         (res_a, damped_a), (res_b, damped_b) = a, b
         if name == "cams":  # anchors do not depend on the cameras
-            return jnp.einsum("kcnd,lcnd->ckl", res_a["pixels"], res_b["pixels"]) + jnp.einsum(
-                "kcp,lcp->ckl", damped_a["cams"], damped_b["cams"]
+            own = lambda r_a, r_b: jnp.einsum("kcp,lcp->ckl", r_a, r_b)  # noqa: E731
+            return (
+                jnp.einsum("kcnd,lcnd->ckl", res_a["pixels"], res_b["pixels"])
+                + own(res_a["pinned"], res_b["pinned"])
+                + own(damped_a["cams"], damped_b["cams"])
             )
         if name == "X":  # a point's anchor residual is its own too
             G = jnp.einsum("kcnd,lcnd->nkl", res_a["pixels"], res_b["pixels"])
@@ -560,7 +588,7 @@ def bundle_adjust(
             f"`pixels` must be (C, N, 2) tracks for the rig's {cameras.batch_shape} cameras; "
             f"got {pixels.shape}."
         )
-    seen = np.all(np.isfinite(pixels), -1)
+    seen = np.all(np.isfinite(pixels), -1) & np.asarray(finite_cameras(cameras))[:, None]
     if mask is not None:
         seen &= np.asarray(mask, dtype=bool)
     candidates = np.flatnonzero(seen.sum(0) >= min_views)
@@ -604,6 +632,7 @@ def bundle_adjust(
             max_steps=max_steps,
         )
         cameras = refinement.cameras
+        observed &= np.asarray(refinement.used)[:, None]  # cameras with a finite seed
         summary = {
             "threshold": float(threshold),
             "points": len(kept),
@@ -627,4 +656,5 @@ def bundle_adjust(
 def _pooled(rms_per_camera, mask):
     """The RMS over all observations from per-camera RMS values and counts."""
     n = np.asarray(mask).sum(1)
-    return np.sqrt(np.sum(np.asarray(rms_per_camera) ** 2 * n) / max(n.sum(), 1))
+    sums = np.where(n > 0, np.asarray(rms_per_camera) ** 2 * n, 0.0)  # (NaN for unused ones)
+    return np.sqrt(np.sum(sums) / max(n.sum(), 1))

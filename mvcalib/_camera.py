@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from . import _validate
 from ._rotation import nearest_rotation
@@ -198,6 +198,27 @@ class Camera(eqx.Module):
         P = _validate.floating("P", P, (3, 4))
         alpha_u, alpha_v, u0, v0, s, R, t = _decompose(P, skew=skew)
         return cls(alpha_u=alpha_u, alpha_v=alpha_v, u0=u0, v0=v0, skew=s, R=R, t=t)
+
+
+def finite_cameras(cameras: Camera) -> Bool[Array, " C"]:
+    """Per camera of a rig `(C,)`: whether all its parameters are finite."""
+    leaves = jax.tree_util.tree_leaves(cameras)
+    return jnp.stack([jnp.isfinite(x).reshape(x.shape[0], -1).all(-1) for x in leaves]).all(0)
+
+
+def where_cameras(keep: Bool[Array, " C"], cameras: Camera, other: Camera) -> Camera:
+    """Camera by camera, `cameras` where `keep`, else `other` (one camera, or a rig)."""
+    pick = lambda x, y: jnp.where(keep.reshape(-1, *(1,) * (x.ndim - 1)), x, y)  # noqa: E731
+    return jax.tree_util.tree_map(pick, cameras, other)
+
+
+def usable_rig(cameras: Camera, mask: Bool[Array, "*batch C N"]):
+    """`(cameras, mask, usable)`: a camera of the rig `(C,)` with a non-finite parameter (one that
+    `calibrate` could not solve is NaN) hidden in `mask` and replaced by the first usable camera,
+    so that its NaN reaches nothing, even where it is multiplied by a zero weight."""
+    usable = finite_cameras(cameras)
+    cameras = where_cameras(usable, cameras, cameras[jnp.argmax(usable)])
+    return cameras, mask & usable[:, None], usable
 
 
 @functools.partial(jax.jit, static_argnames="skew")

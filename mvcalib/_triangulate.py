@@ -12,7 +12,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _validate
-from ._camera import Camera, undistort_points
+from ._camera import Camera, undistort_points, usable_rig
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -264,7 +264,8 @@ def triangulate(
 
     **Arguments:**
 
-    - `cameras`: a rig `(C,)` in one (global) frame.
+    - `cameras`: a rig `(C,)` in one (global) frame. A camera with a non-finite parameter (one
+      that `calibrate` could not solve is NaN) sees nothing.
     - `pixels`: `(..., C, N, 2)`: point n as seen by camera c; leading axes are point sets.
     - `mask`: `(..., C, N)` visibility; default: the finite pixels. Hidden views have no
       influence, even if NaN.
@@ -299,6 +300,7 @@ def triangulate(
         mask = jnp.all(jnp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1])
     cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, pixels.dtype), cameras)
+    cameras, mask, _ = usable_rig(cameras, mask)  # a NaN camera (not calibrated) sees nothing
     run = functools.partial(
         _triangulate,
         cameras,

@@ -104,6 +104,66 @@ def test_refine_rig_input_errors():
         mc.refine_rig(cal.cameras[0], rig.world, rig.pixels)
     with pytest.raises(ValueError, match='"fixed" or "free"'):
         mc.refine_rig(cal.cameras, rig.world, rig.pixels, points="loose")
+    nan = jax.tree_util.tree_map(lambda x: x * np.nan, cal.cameras)
+    with pytest.raises(ValueError, match="no camera of the rig has a finite seed"):
+        mc.refine_rig(nan, rig.world, rig.pixels)
+
+
+def _rig_with_an_unsolved_camera():
+    """`anchored_rig` where camera 2 sees only the target's face z = 0, so that `calibrate`
+    cannot solve it (DEGENERATE: its seed is NaN): (rig, seed, mask, keywords)."""
+    rig, _, T, anchors = anchored_rig()
+    mask = np.asarray(rig.mask).copy()
+    mask[2] &= np.asarray(rig.world)[:, 2] == 0
+    cal = mc.calibrate(rig.world, rig.pixels, mask)
+    assert int(cal.status[2]) == mc.Status.DEGENERATE and bool(cal.ok[np.arange(6) != 2].all())
+    seed = mc.to_global(zero_skew(cal.cameras), T)
+    return rig, seed, mask, dict(transform=T, anchors=anchors, anchor_sigma=0.2)
+
+
+@pytest.mark.parametrize("path", ["dense", "matrix-free"])
+def test_a_camera_calibrate_could_not_solve_takes_no_part(monkeypatch, path):
+    # calibrate, then refine the rig: a camera the DLT could not solve has a NaN seed, which
+    # made the whole rig fail (256 steps on the dense path, NaN matrix-free). It takes no part
+    # now, comes back NaN, and the others are refined as they are without it (the cameras are
+    # coupled here through the placement of the target, which the anchors determine).
+    rig, seed, mask, kwargs = _rig_with_an_unsolved_camera()
+    if path == "matrix-free":
+        monkeypatch.setattr(mc._bundle, "TARGET_DENSE_LIMIT", 0)
+    out = mc.refine_rig(seed, rig.world, rig.pixels, mask, distortion=("k1",), **kwargs)
+    keep = np.arange(6) != 2
+    alone = mc.refine_rig(
+        seed[keep], rig.world, rig.pixels[keep], mask[keep], distortion=("k1",), **kwargs
+    )
+    assert bool(out.ok) and bool(alone.ok), (out.messages(), alone.messages())
+    np.testing.assert_array_equal(out.used, keep)
+    assert "cameras [2] took no part" in out.messages()
+    assert np.isnan(out.cameras.alpha_u[2]) and np.isnan(out.cameras.R[2]).all()
+    assert np.isnan(out.rms_before[2]) and np.isnan(out.rms_after[2])
+    np.testing.assert_allclose(out.rms_after[keep], alone.rms_after, rtol=1e-9)
+    np.testing.assert_allclose(out.cameras.alpha_u[keep], alone.cameras.alpha_u, rtol=1e-7)
+    np.testing.assert_allclose(out.transform.t, alone.transform.t, atol=1e-6)
+
+
+def test_gradients_are_finite_beside_cameras_that_take_no_part():
+    # The implicit derivative solves with the Jacobian at the optimum, which a camera without a
+    # visible point (or without a finite seed) left singular: lineax raised. Such a camera's
+    # parameters are held at their seed by a residual of their own now; the others' gradient
+    # is the one of the rig without it.
+    rig, seed, mask, kwargs = _rig_with_an_unsolved_camera()
+    keep = np.arange(6) != 2
+    hidden = mask.copy()
+    hidden[4] = False  # and a camera with a finite seed that sees nothing
+
+    def loss(pixels, seed, mask):
+        out = mc.refine_rig(seed, rig.world, pixels, mask, distortion=("k1",), **kwargs)
+        return jnp.nansum(out.rms_after)
+
+    grad = jax.grad(loss)(rig.pixels, seed, hidden)
+    assert np.isfinite(grad).all()
+    assert not np.asarray(grad[2]).any() and not np.asarray(grad[4]).any()
+    expected = jax.grad(loss)(rig.pixels[keep], seed[keep], hidden[keep])
+    np.testing.assert_allclose(grad[keep], expected, rtol=1e-6, atol=1e-9)
 
 
 def test_bundle_adjust_from_tracks_alone_recovers_perturbed_cameras():
@@ -131,6 +191,20 @@ def test_bundle_adjust_from_tracks_alone_recovers_perturbed_cameras():
     # Tracks alone pin focal lengths only loosely (the scene's scale and shape are free too,
     # held by four soft anchors at their first, perturbed positions): measured within 1.6 %.
     np.testing.assert_allclose(out.cameras.alpha_u, rig.cameras.alpha_u, rtol=0.03)
+
+
+def test_bundle_adjust_leaves_out_a_camera_without_parameters():
+    # One camera of the starting rig is NaN (not calibrated): its tracks used to make every
+    # triangulated point NaN, and the first round stopped with "keeps 0 points".
+    rig = mc.synthetic.random_rig(jax.random.key(32), 5, mc.targets.box_corner_grid(4))
+    noisy = np.asarray(rig.pixels) + 0.3 * np.random.default_rng(32).standard_normal(
+        rig.pixels.shape
+    )
+    start = eqx.tree_at(lambda c: c.alpha_u, rig.cameras, rig.cameras.alpha_u.at[1].set(np.nan))
+    out = mc.bundle_adjust(start, noisy, distortion=(), thresholds=(5.0,), max_steps=10)
+    np.testing.assert_array_equal(out.refinement.used, [True, False, True, True, True])
+    assert np.isnan(out.cameras.alpha_u[1]) and np.isfinite(np.delete(out.cameras.alpha_u, 1)).all()
+    assert out.rounds[0]["observations"] == 4 * 48 and out.rounds[0]["after"] < 0.4
 
 
 def test_bundle_adjust_and_aniposelib_files_refuse_bad_input(tmp_path):

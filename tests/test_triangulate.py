@@ -116,6 +116,12 @@ def test_hidden_views_have_no_influence_even_nan():
     np.testing.assert_allclose(mc.triangulate(cameras, poisoned).points, without.points, atol=1e-10)
     g = jax.grad(lambda px: mc.triangulate(cameras, px, mask).points.sum())(jnp.asarray(pixels))
     assert np.all(np.asarray(g)[2] == 0)
+    # A camera that calibrate could not solve (NaN) sees nothing, even where its pixels are
+    # finite: it made every point NaN (a zero weight times NaN).
+    broken = jax.tree_util.tree_map(lambda x: x.at[2].set(jnp.nan), cameras)
+    out = mc.triangulate(broken, pixels)
+    np.testing.assert_allclose(out.points, without.points, rtol=1e-12, atol=1e-10)
+    np.testing.assert_array_equal(out.views, without.views)
 
 
 def test_diagnostics_flag_what_cannot_be_trusted():
