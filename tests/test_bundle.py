@@ -4,6 +4,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
+import optimistix as optx
 import pytest
 
 import mvcalib as mc
@@ -319,6 +320,23 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
     expected = np.linalg.solve(J.T @ J + lam * np.eye(len(flat)), J.T @ r_flat)
     step = jax.flatten_util.ravel_pytree(sol.value)[0]
     np.testing.assert_allclose(step, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def test_the_matrix_free_lm_accepts_a_trial_that_lost_to_rounding_only():
+    # At the optimum a trial wins or loses by rounding; optimistix's trust region rejected the
+    # losers and shrank the step until one won (7 of 13 steps on 12 cameras, one hidden).
+    search = mc._bundle._RoundingTrustRegion()
+    J = lx.MatrixLinearOperator(jnp.eye(2))
+    y, r = jnp.zeros(2), jnp.array([3.0, 4.0])
+    info = optx.FunctionInfo.ResidualJac(r, J)
+    state = search.init(y, info)
+    eps = float(jnp.finfo(r.dtype).eps)
+    y_eval = y - 1e-3 * r  # a step the model says lowers the loss
+    for relative, accepted in [(4 * eps, True), (1e-9, False)]:  # the loss rises by 2x that
+        trial = optx.FunctionInfo.ResidualJac(r * (1 + relative), J)
+        for s, expected in [(search, accepted), (optx.ClassicalTrustRegion(), False)]:
+            accept = s.step(jnp.array(False), y, y_eval, info, trial, state)[1]
+            assert bool(accept) == expected, (type(s).__name__, relative)
 
 
 def test_default_solver_is_dense_for_small_problems_and_bundle_adjustment():
