@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
@@ -238,6 +239,36 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         del fn, args, options, state, tags, result
         return y, aux, {}
+
+
+class _RoundingTrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's trust region, which also accepts a trial that changed the loss by no more
+    than its rounding (as `SecantLM`'s "exact" test)."""
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        step_size, accept, result, state = super().step(
+            first_step, y, y_eval, f_info, f_eval_info, state
+        )
+        f, f_eval = f_info.as_min(), f_eval_info.as_min()
+        rounding = jnp.abs(f_eval - f) <= 64 * jnp.finfo(f.dtype).eps * f
+        return step_size, accept | rounding, result, state
+
+
+class LevenbergMarquardt(optx.LevenbergMarquardt):
+    """`optx.LevenbergMarquardt`, which also accepts a trial that changed the loss by its
+    rounding only.
+
+    At the optimum, trials win or lose by rounding alone, and optimistix's LM tests convergence
+    on accepted steps only: it shrank the step until a trial happened to win. In a vmapped
+    solve the slowest member sets the pace, so that cost every member: triangulating 1200
+    points in 8 views with `refine=True` took 62 against 47 ms; a joint rig of 12 cameras, one
+    hidden, 13 steps (7 lost to rounding) against 6.
+    """
+
+    def __init__(self, rtol, atol, linear_solver=None):
+        linear_solver = lx.QR() if linear_solver is None else linear_solver
+        super().__init__(rtol=rtol, atol=atol, linear_solver=linear_solver)
+        self.search = _RoundingTrustRegion()
 
 
 def _spd_solve(M, B):
@@ -575,7 +606,7 @@ def default_solver(dtype) -> optx.AbstractLeastSquaresSolver:
     """
     if jnp.dtype(dtype) == jnp.float64:
         return SecantLM(rtol=1e-5)
-    return optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)
+    return LevenbergMarquardt(rtol=1e-5, atol=1e-5)
 
 
 def refine(

@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _validate
 from ._camera import Camera, undistort_points, usable_rig
+from ._refine import LevenbergMarquardt
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -118,7 +119,7 @@ def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
         r = cameras.project(X[None])[:, 0] - pixels
         return jnp.where(m[:, None], r, 0.0)
 
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
+    solver = LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     sol = optx.least_squares(residuals, solver, X0, max_steps=max_steps, throw=False)
     return jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, X0)
 

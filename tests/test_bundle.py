@@ -325,7 +325,7 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
 def test_the_matrix_free_lm_accepts_a_trial_that_lost_to_rounding_only():
     # At the optimum a trial wins or loses by rounding; optimistix's trust region rejected the
     # losers and shrank the step until one won (7 of 13 steps on 12 cameras, one hidden).
-    search = mc._bundle._RoundingTrustRegion()
+    search = mc._refine._RoundingTrustRegion()
     J = lx.MatrixLinearOperator(jnp.eye(2))
     y, r = jnp.zeros(2), jnp.array([3.0, 4.0])
     info = optx.FunctionInfo.ResidualJac(r, J)
