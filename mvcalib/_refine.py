@@ -18,7 +18,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _sharding, _validate
-from ._camera import Camera
+from ._camera import Camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import rodrigues
 
@@ -327,7 +327,8 @@ class Refinement(eqx.Module):
     - `iterations`: Levenberg–Marquardt steps per camera.
     - `result`: optimistix's outcome per camera, as the integer index of an `optx.RESULTS` member
       (0 = successful), or -1 where the camera has too few visible points for the free
-      parameters (its cameras are then NaN); `ok` is `result == 0`, `messages()` spells them out.
+      parameters, -2 where its seed is not finite (e.g. a camera `calibrate` could not solve);
+      its camera is then NaN. `ok` is `result == 0`, `messages()` spells them out.
     - `inliers`: `(..., N)` visible points whose final residual is within 3 `loss.scale` (all
       visible points without a robust loss).
     - `covariance`: `(..., P, P)` covariance of the parameters named in `parameter_names` (the
@@ -361,12 +362,17 @@ class Refinement(eqx.Module):
 
 
 TOO_FEW_POINTS = -1
+NOT_FINITE_SEED = -2
 
 
 def _result_messages() -> dict[int, str]:
     items = optx.RESULTS._name_to_item  # noqa: SLF001 (the enumeration's public view is by member)
     messages = {int(item._value): optx.RESULTS[item] or "successful" for item in items.values()}  # noqa: SLF001
     messages[TOO_FEW_POINTS] = "too few visible points for the free parameters: not refined"
+    messages[NOT_FINITE_SEED] = (
+        "the seed has a non-finite parameter (a camera `calibrate` could not solve is NaN): "
+        "not refined"
+    )
     return messages
 
 
@@ -564,8 +570,14 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
     kernel = functools.partial(
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )
-    inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), flat(mask, (n,)))
+    # a camera without a finite seed sees nothing (its problem ends at once), and is flagged
+    cams, mask, usable = usable_rig(cams, flat(mask, (n,)))
+    inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), mask)
     out = _sharding.chunked_map(jax.vmap(kernel), inputs, _chunk_size(math.prod(batch)))
+    refined, rms_before, rms_after, steps, result, *rest = out
+    rms_before, rms_after = (jnp.where(usable, x, jnp.nan) for x in (rms_before, rms_after))
+    result = jnp.where(usable, result, NOT_FINITE_SEED)
+    out = (refined, rms_before, rms_after, steps, result, *rest)
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 
@@ -674,6 +686,14 @@ def refine(
                 f"the camera has {n_min} visible points, {2 * n_min} residuals for {len(free)} "
                 "free parameters; fix some parameters or add points. (In a rig, such a camera "
                 "is flagged instead: `result == -1`.)"
+            )
+    leaves = jax.tree_util.tree_leaves(cameras)
+    if not cameras.batch_shape and _validate.is_concrete(*leaves):
+        if not all(np.isfinite(np.asarray(x)).all() for x in leaves):
+            raise ValueError(
+                "the seed camera has a non-finite parameter (a camera `calibrate` could not "
+                "solve is NaN; see its status). (In a rig, such a camera is flagged instead: "
+                "`result == -2`.)"
             )
     dtype = jnp.result_type(world.dtype, cameras.R.dtype)
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)

@@ -182,6 +182,25 @@ def test_too_few_points_raise_alone_and_are_flagged_in_a_rig():
         mc.refine(seed[1], world, pixels[1], m[1])
 
 
+def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
+    # A NaN seed (calibrate's answer for a camera it could not solve) ran 256 steps, holding up
+    # its whole chunk, and said "maximum number of steps". It is flagged now, after one step,
+    # and the other cameras are as they are without it.
+    cams, world, pixels, mask = distorted_rig(19, 4)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    broken = jax.tree_util.tree_map(lambda x: x.at[2].set(jnp.nan), seed)
+    out = mc.refine(broken, world, pixels, mask)
+    keep = np.array([0, 1, 3])
+    alone = mc.refine(seed[keep], world, pixels[keep], mask[keep])
+    assert np.asarray(out.result).tolist() == [0, 0, -2, 0]
+    assert "non-finite" in out.messages()[2] and int(out.iterations[2]) <= 1
+    assert np.isnan(out.rms_before[2]) and np.isnan(out.rms_after[2])
+    assert np.isnan(out.cameras.alpha_u[2])
+    np.testing.assert_allclose(np.delete(out.rms_after, 2), alone.rms_after, rtol=1e-12)
+    with pytest.raises(ValueError, match="non-finite parameter"):
+        mc.refine(broken[2], world, pixels[2], mask[2])
+
+
 def test_undistort_points_matches_opencv():
     cams, world, pixels, mask = distorted_rig(23, 2, noise=0.0)
     ours = np.asarray(mc.undistort_points(cams, pixels))
