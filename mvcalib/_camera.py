@@ -212,13 +212,25 @@ def where_cameras(keep: Bool[Array, " C"], cameras: Camera, other: Camera) -> Ca
     return jax.tree_util.tree_map(pick, cameras, other)
 
 
-def usable_rig(cameras: Camera, mask: Bool[Array, "*batch C N"]):
+def usable_rig(cameras: Camera, mask: Bool[Array, "*batch C N"], stand_in: Camera | None = None):
     """`(cameras, mask, usable)`: a camera of the rig `(C,)` with a non-finite parameter (one that
-    `calibrate` could not solve is NaN) hidden in `mask` and replaced by the first usable camera,
-    so that its NaN reaches nothing, even where it is multiplied by a zero weight."""
+    `calibrate` could not solve is NaN) hidden in `mask` and replaced by `stand_in`, so that its
+    NaN reaches nothing, even where it is multiplied by a zero weight.
+
+    `stand_in` is by default the first usable camera, for problems whose units come from the
+    rig's cameras; finding it moves data between devices when the rig is split over several.
+    Problems of one camera at a time (`refine`, the views of `triangulate`) take a finite camera
+    of no consequence, `unit_camera`, and stay split.
+    """
     usable = finite_cameras(cameras)
-    cameras = where_cameras(usable, cameras, cameras[jnp.argmax(usable)])
-    return cameras, mask & usable[:, None], usable
+    stand_in = cameras[jnp.argmax(usable)] if stand_in is None else stand_in
+    return where_cameras(usable, cameras, stand_in), mask & usable[:, None], usable
+
+
+def unit_camera(dtype) -> Camera:
+    """A finite camera: unit focal lengths, at the origin, looking along z from z = -1."""
+    one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
+    return Camera(one, one, zero, zero, jnp.eye(3, dtype=dtype), jnp.array([0.0, 0.0, 1.0], dtype))
 
 
 @functools.partial(jax.jit, static_argnames="skew")

@@ -18,7 +18,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _sharding, _validate
-from ._camera import Camera, usable_rig
+from ._camera import Camera, unit_camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import rodrigues
 
@@ -571,7 +571,7 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )
     # a camera without a finite seed sees nothing (its problem ends at once), and is flagged
-    cams, mask, usable = usable_rig(cams, flat(mask, (n,)))
+    cams, mask, usable = usable_rig(cams, flat(mask, (n,)), unit_camera(world.dtype))
     inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), mask)
     out = _sharding.chunked_map(jax.vmap(kernel), inputs, _chunk_size(math.prod(batch)))
     refined, rms_before, rms_after, steps, result, *rest = out

@@ -12,7 +12,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _validate
-from ._camera import Camera, undistort_points, usable_rig
+from ._camera import Camera, undistort_points, unit_camera, usable_rig
 from ._refine import LevenbergMarquardt
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
@@ -301,7 +301,8 @@ def triangulate(
         mask = jnp.all(jnp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1])
     cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, pixels.dtype), cameras)
-    cameras, mask, _ = usable_rig(cameras, mask)  # a NaN camera (not calibrated) sees nothing
+    # a NaN camera (not calibrated) sees nothing
+    cameras, mask, _ = usable_rig(cameras, mask, unit_camera(pixels.dtype))
     run = functools.partial(
         _triangulate,
         cameras,
