@@ -141,12 +141,17 @@ def calibrate(
         seed = result.cameras
         if not options.get("skew", False):
             seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros_like(seed.skew))
-        # Failed cameras have NaN seeds; give them a harmless one and keep them NaN after.
+        # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
+        # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
         ok = result.ok
-        safe = jax.tree_util.tree_map(
-            lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, 1.0), seed
-        )
-        refined = _refine.refine(safe, world, pixels, mask & ok[..., None], **options)
+        if seed.batch_shape:
+            refined = _refine.refine(seed, world, pixels, mask, **options)
+        else:
+            one = lambda x: x[None]  # noqa: E731
+            refined = _refine.refine(
+                jax.tree_util.tree_map(one, seed), world, one(pixels), one(mask), **options
+            )
+            refined = jax.tree_util.tree_map(lambda x: x[0], refined)
         # The check of the refined camera counts the points the fit kept (a robust loss's
         # inliers; all visible points for least squares).
         rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)

@@ -56,6 +56,23 @@ def test_strict_and_raise_if_failed_name_the_failed_cameras():
     assert ok.raise_if_failed() is ok
 
 
+def test_refine_keeps_the_statuses_of_failed_cameras_in_a_rig_and_alone():
+    # With refine=True a failed camera stays failed and NaN, in a rig and alone; alone it was
+    # refused by `refine` ("0 visible points") instead of returning its status.
+    rig, world, pixels, mask = rig_with_problems()
+    result = mc.calibrate(world, pixels, mask, refine=dict(distortion=()))
+    plain = mc.calibrate(world, pixels, mask)
+    np.testing.assert_array_equal(result.status, plain.status)
+    failed = ~np.asarray(plain.ok)
+    assert np.isnan(np.asarray(result.cameras.alpha_u)[failed]).all()
+    assert np.isfinite(np.asarray(result.cameras.alpha_u)[~failed]).all()
+    for i in (1, 3, 5):
+        alone = mc.calibrate(world[i], pixels[i], mask[i], refine=dict(distortion=()))
+        assert int(alone.status) == int(plain.status[i]) and np.isnan(float(alone.cameras.alpha_u))
+    alone = mc.calibrate(world[0], pixels[0], mask[0], refine=dict(distortion=()))
+    np.testing.assert_allclose(alone.cameras.alpha_u, result.cameras.alpha_u[0], rtol=1e-9)
+
+
 def test_collinear_points_are_degenerate():
     world = np.c_[np.linspace(0, 100, 10), 2 * np.linspace(0, 100, 10), np.full(10, 5.0)]
     pixels = np.random.default_rng(0).uniform(0, 500, size=(10, 2))
