@@ -518,8 +518,9 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     y0 = jnp.zeros(len(free), dtype)
     options = {"jacobian_transpose": jacobian_t} if isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
-        residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False
-    )
+        residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False,
+        adjoint=_ADJOINT,
+    )  # fmt: skip
     y = sol.value
     refined = _unpack(_parameters(y, p0, scale, free), cam.R)
 
@@ -547,6 +548,11 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
         inliers, cov, jnp.sqrt(jnp.diagonal(cov)),
     )  # fmt: skip
 
+
+# Implicit derivatives by a pseudo-inverse: a camera with too few points (none, where its seed
+# is not finite) has a singular system, on which the default solve raised for the whole batch;
+# its result is NaN, and its derivative zero.
+_ADJOINT = optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
 
 CHUNK = 16
 

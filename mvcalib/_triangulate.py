@@ -13,7 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _validate
 from ._camera import Camera, undistort_points, unit_camera, usable_rig
-from ._refine import LevenbergMarquardt
+from ._refine import _ADJOINT, LevenbergMarquardt
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -120,7 +120,9 @@ def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
         return jnp.where(m[:, None], r, 0.0)
 
     solver = LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    sol = optx.least_squares(residuals, solver, X0, max_steps=max_steps, throw=False)
+    sol = optx.least_squares(
+        residuals, solver, X0, max_steps=max_steps, throw=False, adjoint=_ADJOINT
+    )
     return jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, X0)
 
 
@@ -147,7 +149,9 @@ def _diagnostics(cameras: Camera, X, u, v, m):
         return jnp.minimum(cos, jnp.where(m[a] & m, sum(r[a] * r for r in rays), 1.0))
 
     cos = jax.lax.fori_loop(1, w.shape[0], smallest, smallest(0, 1.0))
-    angle = jnp.degrees(jnp.arccos(jnp.clip(jnp.min(cos, 0), -1.0, 1.0)))
+    # (a point seen once has cosine 1, where arccos' slope is infinite: kept off it)
+    cos = jnp.where(n >= 2, jnp.clip(jnp.min(cos, 0), -1.0, 1.0), 0.0)
+    angle = jnp.degrees(jnp.arccos(cos))
     in_front = views @ (w * (cameras.depth(X) <= 0)) == 0
     # A point seen by fewer than two views has no position: its diagnostics are NaN, not
     # whatever the rounding of its stand-in happened to give.
@@ -233,9 +237,16 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
          for i in range(4)]  # fmt: skip
     v = _null_vector(jnp.stack([jnp.stack(row) for row in G]))  # (4, N)
     X = middle + spread * (d + s * v[:3] / v[3]).T  # (N, 3)
+    # That stand-in sits at its one camera's centre, where projections and rays divide by zero;
+    # the diagnostics and the refinement see it at the middle of the rig, a spread along the
+    # cameras' mean axis, instead (not refined: its views are hidden), so that its NaN results
+    # leave the others' derivatives finite.
+    seen = n >= 2
+    away = middle + spread * jnp.mean(cameras.R[:, 2], 0)
+    X = jnp.where(seen[:, None], X, away)
     if refine:
         X = jax.vmap(_refine_point, in_axes=(None, 0, 1, 1, None))(
-            cameras, X, jnp.stack([pu, pv], -1), m, max_steps
+            cameras, X, jnp.stack([pu, pv], -1), m & seen, max_steps
         )
     n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m)
     ok = (n >= 2) & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)

@@ -201,6 +201,25 @@ def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
         mc.refine(broken[2], world, pixels[2], mask[2])
 
 
+def test_gradients_are_finite_beside_cameras_that_are_not_refined():
+    # The implicit derivative solved each camera's system at its optimum, singular for a camera
+    # that sees nothing or has a NaN seed, and lineax raised for the whole batch.
+    cams, world, pixels, mask = distorted_rig(19, 4)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
+    broken = jax.tree_util.tree_map(lambda x: x.at[2].set(jnp.nan), seed)
+    hidden = np.asarray(mask).copy()
+    hidden[1] = False
+
+    def loss(pixels, seed, mask):
+        return jnp.nansum(mc.refine(seed, world, pixels, mask, distortion=()).rms_after)
+
+    grad = jax.grad(loss)(pixels, broken, hidden)
+    assert np.isfinite(grad).all() and not np.asarray(grad[1:3]).any()
+    keep = np.array([0, 3])
+    expected = jax.grad(loss)(pixels[keep], seed[keep], hidden[keep])
+    np.testing.assert_allclose(grad[keep], expected, rtol=1e-9, atol=1e-12)
+
+
 def test_undistort_points_matches_opencv():
     cams, world, pixels, mask = distorted_rig(23, 2, noise=0.0)
     ours = np.asarray(mc.undistort_points(cams, pixels))
