@@ -519,7 +519,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     options = {"jacobian_transpose": jacobian_t} if isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
         residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False,
-        adjoint=_ADJOINT,
+        adjoint=_adjoint(),
     )  # fmt: skip
     y = sol.value
     refined = _unpack(_parameters(y, p0, scale, free), cam.R)
@@ -549,10 +549,16 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     )  # fmt: skip
 
 
-# Implicit derivatives by a pseudo-inverse: a camera with too few points (none, where its seed
-# is not finite) has a singular system, on which the default solve raised for the whole batch;
-# its result is NaN, and its derivative zero.
-_ADJOINT = optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
+def _adjoint() -> optx.ImplicitAdjoint:
+    """Implicit derivatives by a pseudo-inverse (SVD): a camera with too few points (none, where
+    its seed is not finite) has a singular system, on which optimistix's default solve (LU)
+    raised for the whole batch; its result is NaN, and its derivative zero. Where a batch of
+    LAPACK calls can hang (several CPU devices), the batched SVD did (64 cameras split over 2
+    host devices, under `jax.grad`), and the default LU, which did not, stays."""
+    if _sharding.batched_lapack_may_hang():
+        return optx.ImplicitAdjoint()
+    return optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
+
 
 CHUNK = 16
 

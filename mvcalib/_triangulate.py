@@ -13,7 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _sharding, _small, _validate
 from ._camera import Camera, undistort_points, unit_camera, usable_rig
-from ._refine import _ADJOINT, LevenbergMarquardt
+from ._refine import LevenbergMarquardt, _adjoint
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -121,7 +121,7 @@ def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
 
     solver = LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     sol = optx.least_squares(
-        residuals, solver, X0, max_steps=max_steps, throw=False, adjoint=_ADJOINT
+        residuals, solver, X0, max_steps=max_steps, throw=False, adjoint=_adjoint()
     )
     return jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, X0)
 
