@@ -182,13 +182,19 @@ def test_too_few_points_raise_alone_and_are_flagged_in_a_rig():
         mc.refine(seed[1], world, pixels[1], m[1])
 
 
-def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
-    # A NaN seed (calibrate's answer for a camera it could not solve) ran 256 steps, holding up
-    # its whole chunk, and said "maximum number of steps". It is flagged now, after one step,
-    # and the other cameras are as they are without it.
-    cams, world, pixels, mask = distorted_rig(19, 4)
+def rig_with_a_nan_seed():
+    """4 distorted cameras and their DLT seed, and the seed with camera 2 NaN (calibrate's
+    answer for a camera it could not solve): (world, pixels, mask, seed, broken)."""
+    _, world, pixels, mask = distorted_rig(19, 4)
     seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
     broken = jax.tree_util.tree_map(lambda x: x.at[2].set(jnp.nan), seed)
+    return world, pixels, mask, seed, broken
+
+
+def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
+    # A NaN seed ran 256 steps, holding up its whole chunk, and said "maximum number of
+    # steps". It is flagged now, after one step, and the other cameras are as without it.
+    world, pixels, mask, seed, broken = rig_with_a_nan_seed()
     out = mc.refine(broken, world, pixels, mask)
     keep = np.array([0, 1, 3])
     alone = mc.refine(seed[keep], world, pixels[keep], mask[keep])
@@ -204,9 +210,7 @@ def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
 def test_gradients_are_finite_beside_cameras_that_are_not_refined():
     # The implicit derivative solved each camera's system at its optimum, singular for a camera
     # that sees nothing or has a NaN seed, and lineax raised for the whole batch.
-    cams, world, pixels, mask = distorted_rig(19, 4)
-    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
-    broken = jax.tree_util.tree_map(lambda x: x.at[2].set(jnp.nan), seed)
+    world, pixels, mask, seed, broken = rig_with_a_nan_seed()
     hidden = np.asarray(mask).copy()
     hidden[1] = False
 
