@@ -249,8 +249,8 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
             cameras, X, jnp.stack([pu, pv], -1), m & seen, max_steps
         )
     n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m)
-    ok = (n >= 2) & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
-    X = jnp.where((n >= 2)[:, None], X, jnp.nan)
+    ok = seen & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
+    X = jnp.where(seen[:, None], X, jnp.nan)
     return Triangulation(points=X, views=n.astype(jnp.int32), rms=rms, angle=angle, ok=ok)
 
 
