@@ -160,22 +160,29 @@ def _eigen(S):
         )
         return jnp.concatenate([y1 + _times(Ku, x3), y2 + _times(Kv, x3), x3])
 
-    def away(x, u):
-        """`x` less its component along the unit vectors `u` (one per camera)."""
-        return x - u * _small.leading_sum(u * x)
+    def along(u, x):
+        """The components of `x` along `u`, per camera."""
+        return _small.leading_sum(u * x)
 
     def iterate(X):
-        """The next `(v, z)` and the length of `z` before its normalisation.
+        """The next `(v, z)` from `X = (v, z)`, and `G` times each of them: `G^-1 v / length`
+        and `G^-1 z` less its component along the new v, over its length, are the new iterates,
+        so that G takes them back to `v / length` and to `(z - removed G v_new) / length`.
 
         ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's size,
         which the second removes; one normalisation after both, as the length between them only
         sets a scale)
         """
         Y = solve(X)
-        v = _small.normalised(Y[:, 0])
-        z = away(away(Y[:, 1], v), v)
-        length = jnp.sqrt(_small.leading_sum(z * z))
-        return jnp.stack([v, z / length], 1), length
+        v_length = jnp.sqrt(along(Y[:, 0], Y[:, 0]))
+        v = Y[:, 0] / v_length
+        first = along(v, Y[:, 1])
+        z = Y[:, 1] - first * v
+        second = along(v, z)
+        z = z - second * v
+        z_length = jnp.sqrt(along(z, z))
+        G_v = X[:, 0] / v_length
+        return jnp.stack([v, z / z_length], 1), G_v, (X[:, 1] - (first + second) * G_v) / z_length
 
     def change(new, old):
         # (G is positive definite: a step never flips v's sign) (a maximum over 12 arrays, not a
@@ -185,15 +192,14 @@ def _eigen(S):
     start = jnp.asarray([[float(i == 11), x] for i, x in enumerate(_START)], S.dtype)  # (12, 2)
     start = jnp.broadcast_to(start.reshape((12, 2) + (1,) * (S.ndim - 2)), (12, 2) + S.shape[2:])
     one = jnp.ones(S.shape[2:], S.dtype)
-    X, before, last = start, one, one
-    zs, lengths = [start[:, 1]], [one]  # the iterates of z, and their lengths before normalising
+    # the iterates and G times them (unrolled: no copies of the carry between steps)
+    X, before, last, G_zs = start, one, one, []
     for _ in range(_MIN_STEPS):
-        Y, length = iterate(X)
+        Y, G_v, G_z = iterate(X)
         before, last = last, change(Y[:, 0], X[:, 0])
-        X = Y
-        zs.append(Y[:, 1])
-        lengths.append(length)
-    v = X[:, 0]
+        X, previous = Y, X[:, 1]
+        G_zs.append(G_z)
+    v, z = X[:, 0], X[:, 1]
 
     # The error shrinks by a constant factor per step, so the next change of v is about
     # change^2 / previous change: a camera stops once that is below rounding, and keeps its
@@ -202,35 +208,44 @@ def _eigen(S):
         return last * last <= 8 * jnp.finfo(S.dtype).eps * before
 
     def step(state):
-        k, v, last, done = state
-        w = _small.normalised(solve(v[:, None])[:, 0])
+        k, v, G_v, last, done = state
+        w = solve(v[:, None])[:, 0]
+        length = jnp.sqrt(along(w, w))
+        w = w / length
         new = change(w, v)
-        return k + 1, jnp.where(done, v, w), jnp.where(done, last, new), done | converged(new, last)
+        keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
+        done_now = done | converged(new, last)
+        return k + 1, keep(v, w), keep(G_v, v / length), keep(last, new), done_now
 
     def more(state):
         k, *_, done = state
         return (k < _MAX_STEPS) & ~jnp.all(done)
 
-    _, v, _, _ = jax.lax.while_loop(more, step, (_MIN_STEPS, v, last, converged(last, before)))
+    _, v, G_v, _, _ = jax.lax.while_loop(
+        more, step, (_MIN_STEPS, v, G_v, last, converged(last, before))
+    )
 
     # Rayleigh-Ritz on the last two iterates of z: the smaller eigenvalue of the 2 x 2 matrix
     # [[a, b], [b, c]] = (z, y)^T G (z, y), from above, with z the last iterate and y the one
-    # before less its component along z (orthonormal), in the form that does not cancel when z
-    # is already close (a << c). The products with G come from the steps themselves: an iterate
-    # is `z_k = P G^-1 z_(k-1) / length_k` with P the projection away from v, so that
-    # `G z_k = z_(k-1) / length_k` but for a multiple of `G v`, which is ~`s_12^2 v` and
-    # orthogonal to z and y. Where the two iterates agree to sqrt(eps), z's Rayleigh quotient a
-    # is already exact to rounding, and y would be mostly rounding.
-    z, previous, earlier = zs[-1], zs[-2], zs[-3]
-    G_z, G_previous = previous / lengths[-1], earlier / lengths[-2]
-    m = _small.leading_sum(z * previous)
-    y = previous - m * z
-    length = jnp.sqrt(_small.leading_sum(y * y))
+    # before, both off v (which may have moved on since) and orthonormal, in the form that does
+    # not cancel when z is already close (a << c). The products with G are those the steps
+    # made known (`iterate`), not computed. Where the two iterates agree to sqrt(eps), z's
+    # Rayleigh quotient a is already exact to rounding, and y would be mostly rounding.
+    def off_v(x, G_x):
+        c = along(v, x)
+        return x - c * v, G_x - c * G_v
+
+    z, G_z = off_v(z, G_zs[-1])
+    length = jnp.sqrt(along(z, z))
+    z, G_z = z / length, G_z / length
+    y, G_y = off_v(previous, G_zs[-2])
+    m = along(z, y)
+    y, G_y = y - m * z, G_y - m * G_z
+    length = jnp.sqrt(along(y, y))
     distinct = length > jnp.sqrt(jnp.finfo(S.dtype).eps)
     scale = jnp.where(distinct, length, 1.0)
-    y, G_y = y / scale, (G_previous - m * G_z) / scale
-    a = m / lengths[-1]  # z^T G z = z^T z_(k-1) / length_k
-    b, c = (_small.leading_sum(p * q) for p, q in ((z, G_y), (y, G_y)))
+    y, G_y = y / scale, G_y / scale
+    a, b, c = (along(p, q) for p, q in ((z, G_z), (z, G_y), (y, G_y)))
     half = 0.5 * (c - a)
     root = jnp.sqrt(half * half + b * b)
     usable = distinct & (root + half > 0)
