@@ -126,17 +126,17 @@ def _eigen(S):
     positive, so the start is never orthogonal to the answer. Noise-free points need that one
     step; each further step multiplies the error by the ratio of the two smallest eigenvalues
     (<= 3e-5 with 0.5 pixel of noise on the benchmark's rig, 0.03 at 10 pixels). A camera stops
-    after `_MIN_STEPS` (5) once its next change would be below rounding, else after `_MAX_STEPS`
+    after `_MIN_STEPS` (3) once its next change would be below rounding, else after `_MAX_STEPS`
     (8, which leave 1e-13 at 10 pixels); the loop runs while any camera goes on, the others
     keeping their vectors, so that each camera's answer is the same in any batch.
 
-    `s_11` comes from a second vector iterated beside the first for the first `_MIN_STEPS`, kept
-    orthogonal to it, in the same solves, and a Rayleigh-Ritz step on its last two iterates (a
-    fixed number of steps: the estimate does not depend on when v stops): from above,
-    exact where it matters (for nearly degenerate points the next eigenvalue is far below the
-    others and the steps converge at once); on 1000 random cameras of the box corner's 19 points
-    within 2.6 % (median 0.1 %) from 0 to 10 pixels of noise, within 2e-7 for six of them (the
-    test asks 5 %).
+    `s_11` comes from a second vector z, iterated in the same solves as v for its first
+    `_MIN_STEPS`, then alone up to `_Z_STEPS` (5: a fixed number, so that the estimate does not
+    depend on when v stops), kept orthogonal to v, and a Rayleigh-Ritz step on its last two
+    iterates, whose products with G the steps themselves give: from above, exact where it matters
+    (for nearly degenerate points the next eigenvalue is far below the others and the steps
+    converge at once); on 1000 random cameras of the box corner's 19 points within 2.6 % (median
+    0.1 %) from 0 to 10 pixels of noise, within 2e-7 for six of them (the test asks 5 %).
     """
     S0, Su, Sv, Sq = _blocks(S)
     floor = jnp.finfo(S.dtype).eps * sum(2 * S0[i, i] + Sq[i, i] for i in range(4)) / 12
@@ -164,25 +164,24 @@ def _eigen(S):
         """The components of `x` along `u`, per camera."""
         return _small.leading_sum(u * x)
 
-    def iterate(X):
-        """The next `(v, z)` from `X = (v, z)`, and `G` times each of them: `G^-1 v / length`
-        and `G^-1 z` less its component along the new v, over its length, are the new iterates,
-        so that G takes them back to `v / length` and to `(z - removed G v_new) / length`.
+    def next_v(v, Y_v):
+        """The next iterate of v from `Y_v = G^-1 v`, and G times it (`v / length`)."""
+        length = jnp.sqrt(along(Y_v, Y_v))
+        return Y_v / length, v / length
+
+    def next_z(z, Y_z, v, G_v):
+        """The next iterate of z from `Y_z = G^-1 z`, off v, and G times it.
 
         ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's size,
         which the second removes; one normalisation after both, as the length between them only
         sets a scale)
         """
-        Y = solve(X)
-        v_length = jnp.sqrt(along(Y[:, 0], Y[:, 0]))
-        v = Y[:, 0] / v_length
-        first = along(v, Y[:, 1])
-        z = Y[:, 1] - first * v
-        second = along(v, z)
-        z = z - second * v
-        z_length = jnp.sqrt(along(z, z))
-        G_v = X[:, 0] / v_length
-        return jnp.stack([v, z / z_length], 1), G_v, (X[:, 1] - (first + second) * G_v) / z_length
+        first = along(v, Y_z)
+        w = Y_z - first * v
+        second = along(v, w)
+        w = w - second * v
+        length = jnp.sqrt(along(w, w))
+        return w / length, (z - (first + second) * G_v) / length
 
     def change(new, old):
         # (G is positive definite: a step never flips v's sign) (a maximum over 12 arrays, not a
@@ -192,14 +191,20 @@ def _eigen(S):
     start = jnp.asarray([[float(i == 11), x] for i, x in enumerate(_START)], S.dtype)  # (12, 2)
     start = jnp.broadcast_to(start.reshape((12, 2) + (1,) * (S.ndim - 2)), (12, 2) + S.shape[2:])
     one = jnp.ones(S.shape[2:], S.dtype)
-    # the iterates and G times them (unrolled: no copies of the carry between steps)
-    X, before, last, G_zs = start, one, one, []
+    # v and z side by side, then z alone; the iterates of z and G times them (unrolled: no
+    # copies of the carry between steps)
+    v, z, before, last, zs = start[:, 0], start[:, 1], one, one, []
     for _ in range(_MIN_STEPS):
-        Y, G_v, G_z = iterate(X)
-        before, last = last, change(Y[:, 0], X[:, 0])
-        X, previous = Y, X[:, 1]
-        G_zs.append(G_z)
-    v, z = X[:, 0], X[:, 1]
+        Y = solve(jnp.stack([v, z], 1))
+        new, G_v = next_v(v, Y[:, 0])
+        before, last = last, change(new, v)
+        v = new
+        zs.append((z, *next_z(z, Y[:, 1], v, G_v)))
+        z = zs[-1][1]
+    for _ in range(_Z_STEPS - _MIN_STEPS):
+        zs.append((z, *next_z(z, solve(z[:, None])[:, 0], v, G_v)))
+        z = zs[-1][1]
+    (previous, z, G_z), (_, _, G_previous) = zs[-1], zs[-2]
 
     # The error shrinks by a constant factor per step, so the next change of v is about
     # change^2 / previous change: a camera stops once that is below rounding, and keeps its
@@ -209,13 +214,11 @@ def _eigen(S):
 
     def step(state):
         k, v, G_v, last, done = state
-        w = solve(v[:, None])[:, 0]
-        length = jnp.sqrt(along(w, w))
-        w = w / length
+        w, G_w = next_v(v, solve(v[:, None])[:, 0])
         new = change(w, v)
         keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
         done_now = done | converged(new, last)
-        return k + 1, keep(v, w), keep(G_v, v / length), keep(last, new), done_now
+        return k + 1, keep(v, w), keep(G_v, G_w), keep(last, new), done_now
 
     def more(state):
         k, *_, done = state
@@ -235,10 +238,10 @@ def _eigen(S):
         c = along(v, x)
         return x - c * v, G_x - c * G_v
 
-    z, G_z = off_v(z, G_zs[-1])
+    z, G_z = off_v(z, G_z)
     length = jnp.sqrt(along(z, z))
     z, G_z = z / length, G_z / length
-    y, G_y = off_v(previous, G_zs[-2])
+    y, G_y = off_v(previous, G_previous)
     m = along(z, y)
     y, G_y = y - m * z, G_y - m * G_z
     length = jnp.sqrt(along(y, y))
@@ -266,8 +269,8 @@ def _frobenius(S):
 
 
 # Inverse iteration stops after _MIN_STEPS once v has converged for every camera, else after
-# _MAX_STEPS (docs of `_eigen`).
-_MIN_STEPS, _MAX_STEPS = 5, 8
+# _MAX_STEPS; the second vector, for s_11, takes _Z_STEPS (docs of `_eigen`).
+_MIN_STEPS, _MAX_STEPS, _Z_STEPS = 3, 8, 5
 # A start for the other eigenvector with no structure that the normal matrix could share.
 _START = (0.93, -0.27, 0.51, 0.12, -0.66, 0.38, 0.84, -0.45, 0.19, 0.71, -0.58, 0.33)
 

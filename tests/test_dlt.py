@@ -109,7 +109,7 @@ def test_inverse_iteration_equals_lapack_svd(noise, points):
 
 def test_condition_estimate_stays_below_the_svds_where_v_converges_slowly():
     # Six points at 10 px: the two smallest eigenvalues of L^T L are close (ratio ~0.2), so v is
-    # still moving after the fifth step, when the second vector's iterates stop. The estimate of
+    # still moving when the second vector's iterates stop (after `_Z_STEPS`). The estimate of
     # s_11 must stay on its side (from above, so the condition number from below) all the same.
     rig = mc.synthetic.random_rig(jax.random.key(104), n_cameras=200, noise=10.0)
     world, pixels = np.asarray(rig.world)[SIX], np.asarray(rig.pixels)[:, SIX]
@@ -149,7 +149,7 @@ def test_batched_call_equals_per_camera_calls(C):
 def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch):
     # Inverse iteration goes on while any camera has not converged; the converged ones keep their
     # vectors, so their answers (and condition estimates) are bitwise those of a batch in which
-    # every camera stops at the fifth step, from the same compiled program.
+    # every camera stops after `_MIN_STEPS`, from the same compiled program.
     # 40 x 19: the program of the test above
     clean = mc.synthetic.random_rig(jax.random.key(5), n_cameras=40, noise=0.5)
     noisy = mc.synthetic.random_rig(jax.random.key(6), n_cameras=1, noise=20.0)
@@ -160,7 +160,7 @@ def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch)
         a, b = (np.asarray(getattr(r, field))[1:] for r in results)
         np.testing.assert_array_equal(a, b, err_msg=field)
 
-    # (the noisy camera does take more steps: stopped at the fifth, its vector is another)
+    # (the noisy camera does take more steps: stopped after `_MIN_STEPS`, its vector is another)
     visible = np.ones(len(world), bool)
     moments = jax.jit(jax.vmap(lambda x: mc._dlt._normalised_moments(world, x, visible)[0]))
     S = jnp.moveaxis(moments(mixed[:2]), 0, -1)  # (4, 10, 2): the noisy camera and a clean one

@@ -115,7 +115,7 @@ def test_calibration_runs_split_by_camera_without_moving_data(two_devices):
         shape = layout["shard_shapes"][0]
         assert shape[0] == 32, (name, layout)
         assert_split(layout, shape, where=name)
-    # The one collective: the DLT's inverse iteration goes on past its fifth step while any
+    # The one collective: the DLT's inverse iteration goes on past `_MIN_STEPS` while any
     # camera has not converged, so the devices agree on that once per extra step (one boolean).
     assert_no_collectives(out["hlo"], allow_all_reduce=1, where="calibrate")
     assert set(out["hlo"]["all_reduce_shapes"]) <= {"pred[]"}
