@@ -368,6 +368,14 @@ NOT_FINITE_SEED = -2
 def _result_messages() -> dict[int, str]:
     items = optx.RESULTS._name_to_item  # noqa: SLF001 (the enumeration's public view is by member)
     messages = {int(item._value): optx.RESULTS[item] or "successful" for item in items.values()}  # noqa: SLF001
+    # optimistix speaks of root-finds; the likely cause here is a camera the points do not pin
+    # down, whose parameters drift along a flat valley of the reprojection error
+    for name in ("max_steps_reached", "nonlinear_max_steps_reached"):
+        messages[int(getattr(optx.RESULTS, name)._value)] = (  # noqa: SLF001
+            "not converged within `max_steps`: the points may not determine the free parameters "
+            "(e.g. one view of a plane with free intrinsics: large standard errors tell; hold "
+            "some with `fix=`, or add views), else raise `max_steps`"
+        )
     messages[TOO_FEW_POINTS] = "too few visible points for the free parameters: not refined"
     messages[NOT_FINITE_SEED] = (
         "the seed has a non-finite parameter (a camera `calibrate` could not solve is NaN): "

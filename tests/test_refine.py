@@ -207,6 +207,23 @@ def test_a_seed_calibrate_could_not_solve_is_flagged_at_once():
         mc.refine(broken[2], world, pixels[2], mask[2])
 
 
+def test_a_camera_its_points_do_not_determine_says_so_when_it_runs_out_of_steps():
+    # One view of a plane does not pin down free intrinsics: the camera's parameters drift
+    # along a flat valley until `max_steps`, and the message says why that may be (optimistix's
+    # speaks of root-finds). Its standard errors are large; the other cameras converge.
+    target = mc.targets.box_corner_grid(6)
+    rig = mc.synthetic.random_rig(jax.random.key(5), 4, target=target, noise=0.3, fill=(0.8, 0.95))
+    seed = zero_skew(mc.calibrate(rig.world, rig.pixels, rig.mask).cameras)
+    mask = np.asarray(rig.mask).copy()
+    on_one_face = np.asarray(rig.world)[:, 0] == 0
+    mask[1] &= on_one_face
+    out = mc.refine(seed, rig.world, rig.pixels, mask, max_steps=64)
+    assert np.asarray(out.ok).tolist() == [True, False, True, True]
+    assert "the points may not determine the free parameters" in out.messages()[1]
+    relative = np.asarray(out.std("alpha_u") / out.cameras.alpha_u)
+    assert relative[1] > 0.05 and np.all(np.delete(relative, 1) < 0.01), relative
+
+
 def test_gradients_are_finite_beside_cameras_that_are_not_refined():
     # The implicit derivative solved each camera's system at its optimum, singular for a camera
     # that sees nothing or has a NaN seed, and lineax raised for the whole batch.
