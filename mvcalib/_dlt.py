@@ -354,9 +354,9 @@ def _apply(row, world):
     return _dot3(row, world.T) + row[3]
 
 
-def _rms(P, world, pixels, visible):
-    """The reprojection RMS of `P (3, 4)` over the visible points."""
-    depth = jnp.where(visible, _apply(P[2], world), 1.0)
+def _rms(P, world, pixels, visible, depth):
+    """The reprojection RMS of `P (3, 4)` over the visible points, at their `depth`."""
+    depth = jnp.where(visible, depth, 1.0)
     du = _apply(P[0], world) / depth - pixels[:, 0]
     dv = _apply(P[1], world) / depth - pixels[:, 1]
     err2 = jnp.where(visible, du * du + dv * dv, 0.0)
@@ -396,8 +396,8 @@ def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relat
     # ||m3|| = 1 (Faugeras–Toscani), with the sign that puts the visible points in front.
     P = P / jnp.sqrt(_dot3(P[2], P[2]))
     depth = _apply(P[2], world)
-    P = jnp.where(jnp.sum(jnp.where(visible, depth, 0.0)) < 0, -P, P)
-    depth = _apply(P[2], world)
+    behind = jnp.sum(jnp.where(visible, depth, 0.0)) < 0
+    P, depth = jnp.where(behind, -P, P), jnp.where(behind, -depth, depth)
 
     condition = norm / s_11
     n_visible = jnp.sum(visible)
@@ -407,7 +407,7 @@ def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relat
             n_visible < _validate.MIN_POINTS,
             ~(s_11 > rcond * norm),
             jnp.any(visible & (depth <= 0)),
-            poor_fit(_rms(P, world, pixels, visible), pixels, visible, max_relative_rms),
+            poor_fit(_rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms),
         ],
         [
             Status.NON_FINITE,
