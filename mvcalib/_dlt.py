@@ -169,18 +169,21 @@ def _eigen(S):
         length = jnp.sqrt(along(Y_v, Y_v))
         return Y_v / length, v / length
 
-    def next_z(z, Y_z, v, G_v):
-        """The next iterate of z from `Y_z = G^-1 z`, off v, and G times it.
+    def next_z(z, Y_z, v, G_v, first=None):
+        """The next iterate of z from `Y_z = G^-1 z`, off v (`first`, its component along v, if
+        known), and G times it.
 
         ("twice is enough": where v dominates G^-1 z, one projection leaves rounding of v's size,
         which the second removes; one normalisation after both, as the length between them only
-        sets a scale)
+        sets a scale. The second component and the length come from one sum over the entries:
+        `|w - c v|^2 = |w|^2 - c^2` for the unit v and `c = v . w`, and c is at most of the
+        order of the result, so that nothing cancels.)
         """
-        first = along(v, Y_z)
+        first = along(v, Y_z) if first is None else first
         w = Y_z - first * v
-        second = along(v, w)
+        second, squared = _small.leading_sum(jnp.stack([v, w], 1) * w[:, None])
         w = w - second * v
-        length = jnp.sqrt(along(w, w))
+        length = jnp.sqrt(squared - second * second)
         return w / length, (z - (first + second) * G_v) / length
 
     def change(new, old):
@@ -196,10 +199,13 @@ def _eigen(S):
     v, z, before, last, zs = start[:, 0], start[:, 1], one, one, []
     for _ in range(_MIN_STEPS):
         Y = solve(jnp.stack([v, z], 1))
-        new, G_v = next_v(v, Y[:, 0])
+        # |Y_v|^2 and Y_v . Y_z in one sum
+        squared, product = _small.leading_sum(Y[:, :1] * Y)
+        length = jnp.sqrt(squared)
+        new, G_v = Y[:, 0] / length, v / length
         before, last = last, change(new, v)
         v = new
-        zs.append((z, *next_z(z, Y[:, 1], v, G_v)))
+        zs.append((z, *next_z(z, Y[:, 1], v, G_v, first=product / length)))
         z = zs[-1][1]
     for _ in range(_Z_STEPS - _MIN_STEPS):
         zs.append((z, *next_z(z, solve(z[:, None])[:, 0], v, G_v)))
