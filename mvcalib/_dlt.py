@@ -238,8 +238,8 @@ def _eigen(S):
     # [[a, b], [b, c]] = (z, y)^T G (z, y), from above, with z the last iterate and y the one
     # before, both off v (which may have moved on since) and orthonormal, in the form that does
     # not cancel when z is already close (a << c). The products with G are those the steps
-    # made known (`iterate`), not computed. Where the two iterates agree to sqrt(eps), z's
-    # Rayleigh quotient a is already exact to rounding, and y would be mostly rounding.
+    # made known (`next_v`, `next_z`), not computed. Where the two iterates agree to sqrt(eps),
+    # z's Rayleigh quotient a is already exact to rounding, and y would be mostly rounding.
     def off_v(x, G_x):
         c = along(v, x)
         return x - c * v, G_x - c * G_v
