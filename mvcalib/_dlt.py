@@ -164,9 +164,10 @@ def _eigen(S):
         """The components of `x` along `u`, per camera."""
         return _small.leading_sum(u * x)
 
-    def next_v(v, Y_v):
-        """The next iterate of v from `Y_v = G^-1 v`, and G times it (`v / length`)."""
-        length = jnp.sqrt(along(Y_v, Y_v))
+    def next_v(v, Y_v, squared=None):
+        """The next iterate of v from `Y_v = G^-1 v` (`squared`, its squared length, if known),
+        and G times it (`v / length`)."""
+        length = jnp.sqrt(along(Y_v, Y_v) if squared is None else squared)
         return Y_v / length, v / length
 
     def next_z(z, Y_z, v, G_v, first=None):
@@ -201,11 +202,10 @@ def _eigen(S):
         Y = solve(jnp.stack([v, z], 1))
         # |Y_v|^2 and Y_v . Y_z in one sum
         squared, product = _small.leading_sum(Y[:, :1] * Y)
-        length = jnp.sqrt(squared)
-        new, G_v = Y[:, 0] / length, v / length
+        new, G_v = next_v(v, Y[:, 0], squared)
         before, last = last, change(new, v)
         v = new
-        zs.append((z, *next_z(z, Y[:, 1], v, G_v, first=product / length)))
+        zs.append((z, *next_z(z, Y[:, 1], v, G_v, first=product / jnp.sqrt(squared))))
         z = zs[-1][1]
     for _ in range(_Z_STEPS - _MIN_STEPS):
         zs.append((z, *next_z(z, solve(z[:, None])[:, 0], v, G_v)))
