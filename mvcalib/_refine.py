@@ -18,7 +18,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _sharding, _validate
-from ._camera import Camera, unit_camera, usable_rig
+from ._camera import Camera, finite_cameras, unit_camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import rodrigues
 
@@ -707,9 +707,8 @@ def refine(
                 "free parameters; fix some parameters or add points. (In a rig, such a camera "
                 "is flagged instead: `result == -1`.)"
             )
-    leaves = jax.tree_util.tree_leaves(cameras)
-    if not cameras.batch_shape and _validate.is_concrete(*leaves):
-        if not all(np.isfinite(np.asarray(x)).all() for x in leaves):
+    if not cameras.batch_shape and _validate.is_concrete(*jax.tree_util.tree_leaves(cameras)):
+        if not bool(finite_cameras(jax.tree_util.tree_map(lambda x: x[None], cameras))[0]):
             raise ValueError(
                 "the seed camera has a non-finite parameter (a camera `calibrate` could not "
                 "solve is NaN; see its status). (In a rig, such a camera is flagged instead: "
