@@ -316,28 +316,69 @@ def poor_fit(rms, pixels, visible, max_relative_rms):
 def _masked_median(x, mask):
     """The median of `x (..., N)` over its entries where `mask` (NaN if none), as `np.median`.
 
-    The k-th smallest value is the largest that has at most k values below it. Up to 32 points
-    this counts them (N^2 comparisons, all elementwise); beyond, it sorts (`_ordered`). On CPU,
-    4096 cameras: 0.2 against 0.5 µs per camera at 19 points, 0.3 against 0.7 at 32; at 36,
-    counting takes 7 µs and sorting 1.
+    Up to `_NETWORK_POINTS` points by a sorting network (Batcher's odd-even merge sort, cut down
+    to the comparators that the middle ranks depend on: 79 for 19 points), elementwise minima and
+    maxima over the batch; beyond, by sorting (`_ordered`). The hidden entries go below and above
+    the visible ones, half each (-inf, then +inf), so that the visible median always sits at the
+    same two ranks of all N. On CPU, 4096 cameras of 19 points, the three medians of `poor_fit`:
+    0.09 against 0.25 µs per camera by counting (N^2 comparisons) and 0.5 by sorting.
     """
     n = x.shape[-1]
     count = jnp.sum(mask, axis=-1)
-    x = jnp.where(mask, x, jnp.inf)  # hidden entries rank last
-    if n <= 32:
-        below = jnp.sum(x[..., None, :] < x[..., :, None], axis=-1)
-
-        def pick(k):
-            return jnp.max(jnp.where(below <= k[..., None], x, -jnp.inf), axis=-1)
-
-    else:
-        ordered = _ordered(x)
+    if n > _NETWORK_POINTS:
+        ordered = _ordered(jnp.where(mask, x, jnp.inf))  # hidden entries rank last
 
         def pick(k):
             return jnp.take_along_axis(ordered, jnp.clip(k, 0, n - 1)[..., None], -1)[..., 0]
 
-    middle = 0.5 * (pick((count - 1) // 2) + pick(count // 2))
-    return jnp.where(count > 0, middle, jnp.nan)
+        middle = 0.5 * (pick((count - 1) // 2) + pick(count // 2))
+        return jnp.where(count > 0, middle, jnp.nan)
+
+    low = (n - count) // 2  # hidden entries that go below
+    wires, below = [], jnp.zeros_like(count)
+    for i in range(n):
+        hidden = jnp.where(below < low, -jnp.inf, jnp.inf).astype(x.dtype)
+        wires.append(jnp.where(mask[..., i], x[..., i], hidden))
+        below = below + ~mask[..., i]
+    for i, j in _median_network(n):
+        wires[i], wires[j] = jnp.minimum(wires[i], wires[j]), jnp.maximum(wires[i], wires[j])
+    first, second, single = _middle_ranks(n)
+    odd = count % 2 == 1
+    first, second = (jnp.where(odd, wires[single], wires[k]) for k in (first, second))
+    return jnp.where(count > 0, 0.5 * (first + second), jnp.nan)
+
+
+_NETWORK_POINTS = 32
+
+
+def _middle_ranks(n):
+    """The ranks among all `n` entries (the hidden ones placed as in `_masked_median`) of the
+    two middle visible entries for an even count, and of the middle one for an odd count."""
+    if n % 2:
+        return max((n - 3) // 2, 0), (n - 1) // 2, (n - 1) // 2
+    return n // 2 - 1, n // 2, n // 2 - 1
+
+
+@functools.cache
+def _median_network(n):
+    """The comparators `(i, j)`, `i < j`, of Batcher's odd-even merge sort of `n` entries (its
+    iterative form, for any n) that the middle ranks depend on."""
+    pairs, p = [], 1
+    while p < n:
+        k = p
+        while k >= 1:
+            for j in range(k % p, n - k, 2 * k):
+                for i in range(min(k, n - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    needed, kept = set(_middle_ranks(n)), []
+    for i, j in reversed(pairs):
+        if i in needed or j in needed:
+            kept.append((i, j))
+            needed |= {i, j}
+    return tuple(reversed(kept))
 
 
 def _ordered(x):

@@ -121,15 +121,18 @@ def test_condition_estimate_stays_below_the_svds_where_v_converges_slowly():
 
 
 def test_masked_median_equals_numpy_median_with_ties_and_hidden_points():
-    # the counting (N <= 32) and sorting branches of the POOR_FIT check's median; sorting orders
-    # the floats' bits as integers: negative values, signed zeros and large exponents included
+    # the sorting-network (N <= 32) and sorting branches of the POOR_FIT check's median, odd and
+    # even N and counts; sorting orders the floats' bits as integers: negative values, signed
+    # zeros and large exponents included
     rng = np.random.default_rng(0)
-    for n, dtype in [(7, np.float64), (19, np.float64), (33, np.float64), (100, np.float32)]:
+    cases = [(1, np.float64), (2, np.float64), (7, np.float64), (19, np.float64)]
+    cases += [(20, np.float64), (32, np.float32), (33, np.float64), (100, np.float32)]
+    for n, dtype in cases:
         x = np.round(3 * rng.standard_normal((500, n)))  # many ties, -0.0 among them
         x[250:] = rng.standard_normal((250, n)) * 10.0 ** rng.integers(-30, 30, (250, 1))
         x = x.astype(dtype)
-        mask = rng.uniform(size=(500, n)) > 0.3
-        mask[0] = False
+        mask = rng.uniform(size=(500, n)) > rng.uniform(0.0, 0.9, (500, 1))
+        mask[0], mask[1] = False, True
         ours = np.asarray(mc._dlt._masked_median(jnp.asarray(x), jnp.asarray(mask)))
         ref = [np.median(row[keep]) if keep.any() else np.nan for row, keep in zip(x, mask)]
         np.testing.assert_array_equal(ours, np.asarray(ref, dtype), err_msg=f"{n} {dtype}")
