@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _validate
+from . import _small, _validate
 from ._rotation import nearest_rotation
 
 
@@ -239,24 +239,36 @@ def _decompose(P, skew: bool):
     return jnp.vectorize(kernel, signature="(3,4)->(),(),(),(),(),(3,3),(3)")(P)
 
 
+# The decomposition's 3-vector products are written out (`_small.dot3`): under `vmap`, `@`,
+# `jnp.linalg.norm` and `jnp.linalg.det` (an LU factorisation) each became a batched library call
+# or a reduction over a short axis; written out, the decomposition of 4096 cameras took
+# 0.074-0.092 against 0.104 µs per camera.
+_dot = _small.dot3
+
+
+def _norm(a):
+    return jnp.sqrt(_dot(a, a))
+
+
 def _normalise_projection(P):
-    M = P[:, :3]
-    scale = jnp.where(jnp.linalg.det(M) < 0, -1.0, 1.0) / jnp.linalg.norm(M[2])
-    return P * scale
+    m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
+    det = _dot(m1, jnp.stack([m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2],
+                              m2[0] * m3[1] - m2[1] * m3[0]]))  # fmt: skip
+    return P * (jnp.where(det < 0, -1.0, 1.0) / _norm(m3))
 
 
 def _decompose_skew(P):
     P = _normalise_projection(P)
     m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
     m14, m24, m34 = P[0, 3], P[1, 3], P[2, 3]
-    u0, v0 = m1 @ m3, m2 @ m3  # eq. 17
+    u0, v0 = _dot(m1, m3), _dot(m2, m3)  # eq. 17
     q2 = m2 - v0 * m3
-    alpha_v = jnp.linalg.norm(q2)  # eq. 19 (|| m2 - v0 m3 || = sqrt(m2.m2 - v0^2))
+    alpha_v = _norm(q2)  # eq. 19 (|| m2 - v0 m3 || = sqrt(m2.m2 - v0^2))
     r2 = q2 / alpha_v  # eq. 21
     q1 = m1 - u0 * m3
-    s = q1 @ r2  # zero for the paper's skew-free camera
+    s = _dot(q1, r2)  # zero for the paper's skew-free camera
     q1 = q1 - s * r2
-    alpha_u = jnp.linalg.norm(q1)  # eq. 19 with the skew removed
+    alpha_u = _norm(q1)  # eq. 19 with the skew removed
     r1 = q1 / alpha_u  # eq. 20
     tz = m34  # eq. 16
     ty = (m24 - v0 * tz) / alpha_v  # eq. 23
@@ -271,9 +283,9 @@ def _decompose_paper(P):
     P = _normalise_projection(P)
     m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
     m14, m24, m34 = P[0, 3], P[1, 3], P[2, 3]
-    u0, v0 = m1 @ m3, m2 @ m3  # eq. 17-18
-    alpha_u = jnp.sqrt(m1 @ m1 - u0**2)  # eq. 19
-    alpha_v = jnp.sqrt(m2 @ m2 - v0**2)
+    u0, v0 = _dot(m1, m3), _dot(m2, m3)  # eq. 17-18
+    alpha_u = jnp.sqrt(_dot(m1, m1) - u0**2)  # eq. 19
+    alpha_v = jnp.sqrt(_dot(m2, m2) - v0**2)
     r1 = (m1 - u0 * m3) / alpha_u  # eq. 20
     r2 = (m2 - v0 * m3) / alpha_v  # eq. 21
     tz = m34  # eq. 16

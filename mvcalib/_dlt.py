@@ -391,9 +391,7 @@ def _ordered(x):
     return jax.lax.bitcast_convert_type(flip(keys), x.dtype)
 
 
-def _dot3(a, b):
-    """The dot product of the first three entries along the leading axis, written out."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+_dot3 = _small.dot3
 
 
 def _apply(row, world):

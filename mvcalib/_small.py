@@ -53,6 +53,12 @@ def lower_inverse(L):
     return X
 
 
+def dot3(a, b):
+    """The dot product of the first three entries along the leading axis, written out (under
+    `vmap`, `@` on 3-vectors is a batched library call, `jnp.sum` a reduction over a short axis)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def normalised(x):
     """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
     if isinstance(x, list):
