@@ -120,6 +120,31 @@ def test_condition_estimate_stays_below_the_svds_where_v_converges_slowly():
     assert np.all(ratio <= 1 + 1e-9) and np.all(ratio >= 0.95), (ratio.min(), ratio.max())
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="known bug: inverse iteration on v alone stops after _MAX_STEPS (8) where the two "
+    "smallest singular values are close; camera 117 is 35 % off the SVD's P with status OK",
+)
+def test_close_smallest_singular_values_still_give_the_svds_answer():
+    # Six points at 10 px: for a few cameras the two smallest singular values of L are close
+    # (s_12 / s_11 up to ~0.8), where inverse iteration on v alone moves the error by only
+    # (s_12 / s_11)^2 a step: camera 117 of these comes out 35 % off the SVD's P, with status
+    # OK, and its condition number above the SVD's. (Iterating v with the second vector as a
+    # block, turned by Rayleigh-Ritz, converges at the rate of the third singular value and
+    # passes this; it made the condition estimate of points on a plane depend on the batch.)
+    rig = mc.synthetic.random_rig(jax.random.key(1100), n_cameras=500, noise=10.0)
+    world, pixels = np.asarray(rig.world)[SIX], np.asarray(rig.pixels)[:, SIX]
+    result = mc.calibrate(world, pixels, max_relative_rms=np.inf)
+    ok = np.flatnonzero(np.asarray(result.ok))  # some put a point behind them at this noise
+    assert len(ok) > 450
+    worst = []
+    for i in ok:
+        P, condition = svd_dlt(world, pixels[i])
+        worst.append(np.max(np.abs(np.asarray(result.P[i]) - P)) / np.abs(P).max())
+        assert 0.95 * condition <= float(result.condition[i]) <= condition * (1 + 1e-9), i
+    assert max(worst) < 1e-9, (int(np.argmax(worst)), max(worst))
+
+
 def test_masked_median_equals_numpy_median_with_ties_and_hidden_points():
     # the sorting-network (N <= 32) and sorting branches of the POOR_FIT check's median, odd and
     # even N and counts; sorting orders the floats' bits as integers: negative values, signed
