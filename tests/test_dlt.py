@@ -120,18 +120,12 @@ def test_condition_estimate_stays_below_the_svds_where_v_converges_slowly():
     assert np.all(ratio <= 1 + 1e-9) and np.all(ratio >= 0.95), (ratio.min(), ratio.max())
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known bug: inverse iteration on v alone stops after _MAX_STEPS (8) where the two "
-    "smallest singular values are close; camera 117 is 35 % off the SVD's P with status OK",
-)
 def test_close_smallest_singular_values_still_give_the_svds_answer():
     # Six points at 10 px: for a few cameras the two smallest singular values of L are close
     # (s_12 / s_11 up to ~0.8), where inverse iteration on v alone moves the error by only
-    # (s_12 / s_11)^2 a step: camera 117 of these comes out 35 % off the SVD's P, with status
-    # OK, and its condition number above the SVD's. (Iterating v with the second vector as a
-    # block, turned by Rayleigh-Ritz, converges at the rate of the third singular value and
-    # passes this; it made the condition estimate of points on a plane depend on the batch.)
+    # (s_12 / s_11)^2 a step: camera 117 of these came out 35 % off the SVD's P after its 8
+    # steps, with status OK, and its condition number above the SVD's. v and the second vector
+    # go on as a block, turned by Rayleigh-Ritz, at the rate of the third singular value.
     rig = mc.synthetic.random_rig(jax.random.key(1100), n_cameras=500, noise=10.0)
     world, pixels = np.asarray(rig.world)[SIX], np.asarray(rig.pixels)[:, SIX]
     result = mc.calibrate(world, pixels, max_relative_rms=np.inf)
