@@ -249,9 +249,9 @@ def _eigen(S):
     # s_12^2 / s_11^2, which comes close to 1 where the two smallest singular values do (six
     # points at 10 px: up to 0.66, where 8 steps of v alone left P 35 % off the SVD's). The
     # larger Ritz value is then its s_11^2, from above. Nearly degenerate points (z's Rayleigh
-    # quotient below 1e-10 of the trace: condition numbers beyond ~1e5, points on a plane)
-    # go on with v alone, as before, for at most `_PLAIN_STEPS`: there the Ritz values are
-    # rounding, and `Status.DEGENERATE` takes their estimate as it was.
+    # quotient below 1e6 eps of the trace: in float64 condition numbers beyond ~7e4, points on a
+    # plane; in float32 every camera) go on with v alone, as before, for at most `_PLAIN_STEPS`:
+    # there the Ritz values are rounding, and `Status.DEGENERATE` takes their estimate as it was.
     def step(state):
         k, v, G_v, z, G_z, ritz_11, last, done, plain = state
         w, G_w = next_v(v, solve(v[:, None])[:, 0])  # v alone
@@ -277,7 +277,7 @@ def _eigen(S):
 
     early = converged(last, before)
     trace = sum(2 * S0[i, i] + Sq[i, i] for i in range(4))
-    plain = along(z, G_z) <= 1e-10 * trace
+    plain = along(z, G_z) <= 1e6 * jnp.finfo(S.dtype).eps * trace  # (float32: every camera)
     start = (_MIN_STEPS, v, G_v, z, G_z, jnp.full_like(one, jnp.inf), last, early, plain)
     _, v, G_v, _, _, ritz_11, _, done, _ = jax.lax.while_loop(more, step, start)
 
