@@ -369,7 +369,7 @@ def _masked_median(x, mask):
     """The median of `x (..., N)` over its entries where `mask` (NaN if none), as `np.median`.
 
     Up to `_NETWORK_POINTS` points by a sorting network (Batcher's odd-even merge sort, cut down
-    to the comparators that the middle ranks depend on: 79 for 19 points), elementwise minima and
+    to the comparators that the middle ranks depend on: 83 for 19 points), elementwise minima and
     maxima over the batch; beyond, by sorting (`_ordered`). The hidden entries go below and above
     the visible ones, half each (-inf, then +inf), so that the visible median always sits at the
     same two ranks of all N. On CPU, 4096 cameras of 19 points, the three medians of `poor_fit`:
