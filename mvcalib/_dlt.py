@@ -253,7 +253,7 @@ def _eigen(S):
     # plane; in float32 every camera) go on with v alone, as before, for at most `_PLAIN_STEPS`:
     # there the Ritz values are rounding, and `Status.DEGENERATE` takes their estimate as it was.
     def step(state):
-        k, v, G_v, z, G_z, ritz_11, last, done, plain = state
+        k, v, G_v, z, G_z, ritz_11, last, done, settled, plain, answer = state
         w, G_w = next_v(v, solve(v[:, None])[:, 0])  # v alone
         Y = solve(jnp.stack([v, z], 1))  # the block
         squared, product = _small.leading_sum(Y[:, :1] * Y)
@@ -266,20 +266,27 @@ def _eigen(S):
         # The first block step turns v by Rayleigh-Ritz, a change of another kind than the
         # steps after it: the test of the rate waits for two changes of the block's own.
         first = ~plain & (k == _MIN_STEPS)
-        done_now = done | (~first & converged(new, last)) | (plain & (k + 1 >= _PLAIN_STEPS))
+        settled_now = settled | (~done & ~first & converged(new, last))
+        done_now = settled_now | done | (plain & (k + 1 >= _PLAIN_STEPS)) | (k + 1 >= _MAX_STEPS)
         new_state = (w, G_w, y, G_y, value, jnp.where(first, 0.0, new))
         old_state = (v, G_v, z, G_z, ritz_11, last)
-        return k + 1, *map(keep, old_state, new_state), done_now, plain
+        # A camera that stops at a limit without settling answers with LAPACK's eigenvector
+        # (`_exact`); the loop keeps its own v for the estimate of s_11 below.
+        answer = keep(answer, w)
+        unsettled = done_now & ~done & ~settled_now
+        at_limit = (k + 1 == _PLAIN_STEPS) | (k + 1 == _MAX_STEPS)
+        answer = jax.lax.cond(at_limit, lambda a: _exact(S, a, unsettled), lambda a: a, answer)
+        return k + 1, *map(keep, old_state, new_state), done_now, settled_now, plain, answer
 
     def more(state):
-        k, *_, done, _ = state
+        k, *_, done, _, _, _ = state
         return (k < _MAX_STEPS) & ~jnp.all(done)
 
     early = converged(last, before)
     trace = sum(2 * S0[i, i] + Sq[i, i] for i in range(4))
     plain = along(z, G_z) <= 1e6 * jnp.finfo(S.dtype).eps * trace  # (float32: every camera)
-    start = (_MIN_STEPS, v, G_v, z, G_z, jnp.full_like(one, jnp.inf), last, early, plain)
-    _, v, G_v, _, _, ritz_11, _, done, _ = jax.lax.while_loop(more, step, start)
+    start = (_MIN_STEPS, v, G_v, z, G_z, jnp.full_like(one, jnp.inf), last, early, early, plain, v)
+    _, v, G_v, _, _, ritz_11, _, _, done, _, answer = jax.lax.while_loop(more, step, start)
 
     # Rayleigh-Ritz on the last two iterates of z: the smaller eigenvalue of the 2 x 2 matrix
     # [[a, b], [b, c]] = (z, y)^T G (z, y), from above, with z the last iterate and y the one
@@ -309,7 +316,24 @@ def _eigen(S):
     estimate = a - lowering
     # where the block went on and converged, both values are from above: the smaller is closer
     estimate = jnp.where(early | plain | ~done, estimate, jnp.minimum(estimate, ritz_11))
-    return v, jnp.sqrt(jnp.maximum(estimate, 0.0))
+    return answer, jnp.sqrt(jnp.maximum(estimate, 0.0))
+
+
+def _exact(S, v, where):
+    """`v (12, *batch)` with LAPACK's eigenvector of G for its smallest eigenvalue `where`: for a
+    camera whose inverse iteration stopped at a limit without settling, i.e. nearly coplanar
+    points with noise, whose L has three or four small singular values close together (v alone
+    and the block of two then converge at a rate near 1: flatness 1e-4 and 0.1 px left P up to
+    25 % off the SVD's). It runs only in a loop step at such a limit (never on the benchmark's
+    rig); not on several CPU devices, where a batch of LAPACK calls can hang
+    (`_sharding.batched_lapack_may_hang`)."""
+    if _sharding.batched_lapack_may_hang():
+        return v
+    per_camera = jnp.moveaxis(S, (0, 1), (-2, -1))
+    G = jnp.vectorize(_normal_matrix, signature="(4,10)->(12,12)")(per_camera)
+    w = jnp.moveaxis(jnp.linalg.eigh(G)[1][..., 0], -1, 0)
+    w = w * jnp.where(_small.leading_sum(w * v) < 0, -1.0, 1.0)
+    return jnp.where(where, w, v)
 
 
 def _times(A, x):

@@ -139,17 +139,11 @@ def test_close_smallest_singular_values_still_give_the_svds_answer():
     assert max(worst) < 1e-9, (int(np.argmax(worst)), max(worst))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known: nearly coplanar points with noise have three or four close small singular "
-    "values; v alone and the block of two do not settle (flatness 1e-4, 0.1 px: P up to ~25 % "
-    "off the SVD's with status OK)",
-)
 def test_nearly_coplanar_points_with_noise_give_the_svds_answer():
-    # The 19 dots squashed to 1e-4 of their depth (condition ~5e4) with 0.1 px of noise. Solved
-    # through G = L^T L the answer can only be as good as cond^2 eps (~1e-7 here); LAPACK's
-    # eigenvector of G where the iteration has not settled gave at most 1.2e-5 (not landed: it
-    # cost 6 % of the DLT's time on the benchmark, where it never runs, and 1-2 s of compile).
+    # The 19 dots squashed to 1e-4 of their depth (condition ~5e4) with 0.1 px of noise: three or
+    # four small singular values close together, where v alone and the block of two do not
+    # settle (before: P up to ~25 % off the SVD's, status OK). Where the iteration stops at a
+    # limit unsettled, LAPACK's eigenvector of G answers: as good as G allows (cond^2 eps).
     rig = mc.synthetic.random_rig(jax.random.key(21), n_cameras=300, noise=0.0)
     world = np.asarray(rig.world).copy()
     world[:, 2] = world[:, 2].mean() + 1e-4 * (world[:, 2] - world[:, 2].mean())
