@@ -239,10 +239,10 @@ def _decompose(P, skew: bool):
     return jnp.vectorize(kernel, signature="(3,4)->(),(),(),(),(),(3,3),(3)")(P)
 
 
-# The decomposition's 3-vector products are written out (`_small.dot3`): under `vmap`, `@`,
-# `jnp.linalg.norm` and `jnp.linalg.det` (an LU factorisation) each became a batched library call
-# or a reduction over a short axis; written out, the decomposition of 4096 cameras took
-# 0.074-0.092 against 0.104 µs per camera.
+# The decomposition's 3-vector products are written out (`_small.dot3`, `_small.triple`): under
+# `vmap`, `@`, `jnp.linalg.norm` and `jnp.linalg.det` (an LU factorisation) each became a batched
+# library call or a reduction over a short axis; written out, the decomposition of 4096 cameras
+# took 0.074-0.092 against 0.104 µs per camera.
 _dot = _small.dot3
 
 
@@ -251,10 +251,8 @@ def _norm(a):
 
 
 def _normalise_projection(P):
-    m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
-    det = _dot(m1, jnp.stack([m2[1] * m3[2] - m2[2] * m3[1], m2[2] * m3[0] - m2[0] * m3[2],
-                              m2[0] * m3[1] - m2[1] * m3[0]]))  # fmt: skip
-    return P * (jnp.where(det < 0, -1.0, 1.0) / _norm(m3))
+    det = _small.triple(P[0, :3], P[1, :3], P[2, :3])
+    return P * (jnp.where(det < 0, -1.0, 1.0) / _norm(P[2, :3]))
 
 
 def _decompose_skew(P):

@@ -145,7 +145,8 @@ def _eigen(S):
     and the smaller of the two is kept.
     """
     S0, Su, Sv, Sq = _blocks(S)
-    floor = jnp.finfo(S.dtype).eps * sum(2 * S0[i, i] + Sq[i, i] for i in range(4)) / 12
+    trace = sum(2 * S0[i, i] + Sq[i, i] for i in range(4))  # of G
+    floor = jnp.finfo(S.dtype).eps * trace / 12
     # A 4 x 4 block's rows are vectors of several right-hand sides at once: fewer, wider
     # operations than entry by entry.
     L0 = _small.cholesky(S0, floor)
@@ -283,10 +284,9 @@ def _eigen(S):
         return (k < _MAX_STEPS) & ~jnp.all(done)
 
     early = converged(last, before)
-    trace = sum(2 * S0[i, i] + Sq[i, i] for i in range(4))
     plain = along(z, G_z) <= 1e6 * jnp.finfo(S.dtype).eps * trace  # (float32: every camera)
     start = (_MIN_STEPS, v, G_v, z, G_z, jnp.full_like(one, jnp.inf), last, early, early, plain, v)
-    _, v, G_v, _, _, ritz_11, _, _, done, _, answer = jax.lax.while_loop(more, step, start)
+    _, v, G_v, _, _, ritz_11, _, _, settled, _, answer = jax.lax.while_loop(more, step, start)
 
     # Rayleigh-Ritz on the last two iterates of z: the smaller eigenvalue of the 2 x 2 matrix
     # [[a, b], [b, c]] = (z, y)^T G (z, y), from above, with z the last iterate and y the one
@@ -315,7 +315,7 @@ def _eigen(S):
     lowering = jnp.where(usable, b * b / jnp.where(usable, root + half, 1.0), 0.0)
     estimate = a - lowering
     # where the block went on and converged, both values are from above: the smaller is closer
-    estimate = jnp.where(early | plain | ~done, estimate, jnp.minimum(estimate, ritz_11))
+    estimate = jnp.where(early | plain | ~settled, estimate, jnp.minimum(estimate, ritz_11))
     return answer, jnp.sqrt(jnp.maximum(estimate, 0.0))
 
 
@@ -542,9 +542,7 @@ def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relat
     P = jnp.where(status == Status.OK, P, jnp.nan)
     # With the points in front, det(M) < 0 means the world frame is mirrored relative to the
     # camera: left-handed world coordinates (the Oxford VGG sets are) or pixels with y up.
-    m2, m3 = P[1], P[2]
-    cross = [m2[i] * m3[j] - m2[j] * m3[i] for i, j in ((1, 2), (2, 0), (0, 1))]
-    mirrored = _dot3(P[0], cross) < 0
+    mirrored = _small.triple(P[0], P[1], P[2]) < 0
     return P, status, condition, mirrored
 
 

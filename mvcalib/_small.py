@@ -59,6 +59,13 @@ def dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def triple(a, b, c):
+    """`a . (b x c)`, the determinant of the 3 x 3 matrix with rows `a, b, c` (3-vectors along the
+    leading axis), written out like `dot3`."""
+    cross = [b[i] * c[j] - b[j] * c[i] for i, j in ((1, 2), (2, 0), (0, 1))]
+    return dot3(a, cross)
+
+
 def normalised(x):
     """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
     if isinstance(x, list):
