@@ -255,12 +255,11 @@ def _eigen(S):
     # there the Ritz values are rounding, and `Status.DEGENERATE` takes their estimate as it was.
     def step(state):
         k, v, G_v, z, G_z, ritz_11, last, done, settled, plain, answer = state
-        w, G_w = next_v(v, solve(v[:, None])[:, 0])  # v alone
-        Y = solve(jnp.stack([v, z], 1))  # the block
+        Y = solve(jnp.stack([v, z], 1))
         squared, product = _small.leading_sum(Y[:, :1] * Y)
-        u, G_u = next_v(v, Y[:, 0], squared)
-        y, G_y = next_z(z, Y[:, 1], u, G_u, first=product / jnp.sqrt(squared))
-        u, G_u, y, G_y, value = ritz(u, G_u, y, G_y)
+        w, G_w = next_v(v, Y[:, 0], squared)  # v alone
+        y, G_y = next_z(z, Y[:, 1], w, G_w, first=product / jnp.sqrt(squared))
+        u, G_u, y, G_y, value = ritz(w, G_w, y, G_y)  # the block
         w, G_w = (jnp.where(plain, p, q) for p, q in ((w, u), (G_w, G_u)))
         new = change(w, v)
         keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
