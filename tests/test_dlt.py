@@ -204,9 +204,9 @@ def test_a_camera_that_needs_more_steps_leaves_the_others_unchanged(monkeypatch)
         np.testing.assert_array_equal(a, b, err_msg=field)
 
     # (the noisy camera does take more steps: stopped after `_MIN_STEPS`, its vector is another)
-    visible = np.ones(len(world), bool)
-    moments = jax.jit(jax.vmap(lambda x: mc._dlt._normalised_moments(world, x, visible)[0]))
-    S = jnp.moveaxis(moments(mixed[:2]), 0, -1)  # (4, 10, 2): the noisy camera and a clean one
+    visible = np.ones(mixed[:2].shape[:2], bool)
+    # (4, 10, 2): the noisy camera and a clean one
+    S = jax.jit(lambda x: mc._dlt._moments(world, x, visible)[0])(mixed[:2])
 
     def eigenvectors():  # traced anew: `_MAX_STEPS` as it is now
         return np.asarray(jax.jit(lambda S: mc._dlt._eigen(S)[0])(S))
@@ -240,7 +240,10 @@ def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
         np.testing.assert_array_equal(chunked[1], whole[1])  # status
         assert {3, 7, 49} <= set(np.flatnonzero(whole[1] != mc.Status.OK))
         np.testing.assert_allclose(chunked[0], whole[0], rtol=1e-12, atol=0)  # P, NaN alike
-        np.testing.assert_allclose(chunked[2], whole[2], rtol=1e-12)  # condition
+        # condition; where s_11 is zero (five points) it is rounding, at any batch size > 1/rcond
+        solved = whole[1] != mc.Status.TOO_FEW_POINTS
+        np.testing.assert_allclose(chunked[2][solved], whole[2][solved], rtol=1e-12)
+        assert np.all(chunked[2][~solved] > 1e8) and np.all(whole[2][~solved] > 1e8)
         np.testing.assert_array_equal(chunked[3], whole[3])  # mirrored
 
 
@@ -259,11 +262,15 @@ def test_masked_points_have_no_influence():
     mask[2, 14] = False
     P = mc.dlt(rig.world, rig.pixels, mask)
     # wild values, even NaN and inf, in the hidden entries change nothing, bit for bit
+    world = np.broadcast_to(np.asarray(rig.world), (5, 19, 3)).copy()
+    P_own = mc.dlt(world, rig.pixels, mask)  # world points per camera
     pixels = np.asarray(rig.pixels).copy()
     pixels[~mask] = np.array([1e7, np.nan])
-    world = np.broadcast_to(np.asarray(rig.world), (5, 19, 3)).copy()
     world[~mask] = np.inf
-    np.testing.assert_array_equal(mc.dlt(world, pixels, mask), P)
+    np.testing.assert_array_equal(mc.dlt(world, pixels, mask), P_own)
+    np.testing.assert_array_equal(mc.dlt(rig.world, pixels, mask), P)
+    # (a shared target's moments are formed in a frame of its own: the same to rounding)
+    np.testing.assert_allclose(P_own, P, rtol=1e-12, atol=0)
     # and the result is the DLT of the visible points alone
     keep = mask[2]
     np.testing.assert_allclose(
