@@ -597,14 +597,18 @@ def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relat
 
     condition = norm / s_11
     n_visible = jnp.sum(visible)
+    # the checks computed into memory first: else XLA computes them inside `jnp.select`'s
+    # reduction, camera by camera (the checks and the decomposition of 4096 cameras: 0.31 against
+    # 0.24 µs per camera)
+    checks = _small.materialised(jnp.stack([
+        ~all_finite,
+        n_visible < _validate.MIN_POINTS,
+        ~(s_11 > rcond * norm),
+        jnp.any(visible & (depth <= 0)),
+        poor_fit(_rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms),
+    ]))  # fmt: skip
     status = jnp.select(
-        [
-            ~all_finite,
-            n_visible < _validate.MIN_POINTS,
-            ~(s_11 > rcond * norm),
-            jnp.any(visible & (depth <= 0)),
-            poor_fit(_rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms),
-        ],
+        list(checks),
         [
             Status.NON_FINITE,
             Status.TOO_FEW_POINTS,
