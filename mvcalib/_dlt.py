@@ -168,21 +168,21 @@ def _renormalised(S):
     `[[s^2 (A - b c^T - c b^T + d c c^T), s (b - d c)], [., d]]`. The first block's `d` is the
     count of visible points, its `b` their sum, its trace their sum of squares.
     """
-    at = lambda m, i, j: S[m, _ENTRY[i, j]]  # noqa: E731
-    n = jnp.maximum(at(0, 3, 3), 1.0)
-    c = [at(0, k, 3) / n for k in range(3)]
-    ms = sum(at(0, k, k) / n - c[k] * c[k] for k in range(3))
+    at = lambda i, j: S[:, _ENTRY[i, j]]  # noqa: E731 (of the four blocks at once: (4, C))
+    n = jnp.maximum(at(3, 3)[0], 1.0)
+    c = [at(k, 3)[0] / n for k in range(3)]
+    ms = sum(at(k, k)[0] / n - c[k] * c[k] for k in range(3))
     s = jnp.sqrt(3.0 / jnp.where(ms > 0, ms, 1.0))
-    blocks = []
-    for m in range(4):
-        d = at(m, 3, 3)
-        b = [at(m, k, 3) - d * c[k] for k in range(3)]  # b - d c
-        blocks.append(jnp.stack([
-            (d if j == 3 else s * b[j]) if i == 3  # the last row
-            else s * s * (at(m, i, j) - b[i] * c[j] - c[i] * at(m, j, 3))  # A - (b - d c) c^T - c b^T
-            for i, j in _PAIRS
-        ]))  # fmt: skip
-    return jnp.stack(blocks), s, jnp.stack(c, -1)
+    d = at(3, 3)
+    b = [at(k, 3) - d * c[k] for k in range(3)]  # b - d c
+    # entry by entry, each of the four blocks at once: 10 operations rather than 40 (XLA made each
+    # its own kernel; 0.95 of the time of the DLT + decomposition)
+    S = jnp.stack([
+        (d if j == 3 else s * b[j]) if i == 3  # the last row
+        else s * s * (at(i, j) - b[i] * c[j] - c[i] * at(j, 3))  # A - (b - d c) c^T - c b^T
+        for i, j in _PAIRS
+    ], 1)  # fmt: skip
+    return S, s, jnp.stack(c, -1)
 
 
 def _blocks(S):
