@@ -3,7 +3,7 @@
 The DLT's answer is the right singular vector of the 2N x 12 system L for its smallest singular
 value (paper, eq. 11). LAPACK's SVD of each camera's small L costs ~20 µs on CPU, one camera
 after another; the same vector, as the smallest eigenvector of `L^T L`, comes from 40 sums over
-the points and inverse iteration on a 12 x 12 matrix whose structure reduces every solve to
+the points (for a target the cameras share, one matrix product for all of them) and inverse iteration on a 12 x 12 matrix whose structure reduces every solve to
 4 x 4 ones, written out entry by entry so that XLA runs all cameras through a few fused loops.
 Hartley's normalisation keeps `L^T L` well conditioned (`(s_1 / s_11)^2` ~17 for the box-corner
 target), so squaring L costs no accuracy worth the name: the cameras equal the SVD's to ~1e-13.
