@@ -3,8 +3,9 @@
 The DLT's answer is the right singular vector of the 2N x 12 system L for its smallest singular
 value (paper, eq. 11). LAPACK's SVD of each camera's small L costs ~20 µs on CPU, one camera
 after another; the same vector, as the smallest eigenvector of `L^T L`, comes from 40 sums over
-the points (for a target the cameras share, one matrix product for all of them) and inverse iteration on a 12 x 12 matrix whose structure reduces every solve to
-4 x 4 ones, written out entry by entry so that XLA runs all cameras through a few fused loops.
+the points (for a target the cameras share, one matrix product for all of them) and inverse
+iteration on a 12 x 12 matrix whose structure reduces every solve to 4 x 4 ones, written out
+entry by entry so that XLA runs all cameras through a few fused loops.
 Hartley's normalisation keeps `L^T L` well conditioned (`(s_1 / s_11)^2` ~17 for the box-corner
 target), so squaring L costs no accuracy worth the name: the cameras equal the SVD's to ~1e-13.
 """
@@ -102,18 +103,17 @@ def _moments(world, pixels, mask):
     `X X^T` (twice, for the rows of P1 and P2), `-u X X^T`, `-v X X^T` and `(u^2 + v^2) X X^T`:
     the whole matrix is four weighted moment matrices of the points, 40 sums over the points.
 
-    The world points first go into a frame of their own (`_frame` over their finite points for a
-    shared target, over each camera's visible ones for world points per camera), where their ten
-    products are formed once, so that the moments of all cameras are one contraction with their
-    pixel weights over the points: for a shared target a single matrix product, which took half
-    the time of a batch of small ones per camera (4096 cameras of 19 points). Each camera's own
-    normalisation of its visible world points is a similarity of that frame, under which the
-    moments transform by a congruence (`_renormalised`). Its rounding grows with the square of
-    the distance between the visible points' centroid and the frame's, in units of their spread
-    (~1e-16 relative where a camera sees the whole target); a camera for which that is large
-    (`_FAR`) gets the moments of its own normalised points instead. The frame is a device of
-    the arithmetic (the result does not depend on it) and carries no derivative: world points
-    that no camera sees get none.
+    Formed from each camera's normalised world points (`_own_moments`), that takes the products
+    of every camera's points, one small matrix product per camera. For a target the cameras
+    share, its ten products are formed once, in the coordinates given, and the moments of all
+    cameras are one matrix product with their pixel weights (half the time, 4096 cameras of 19
+    points); each camera's normalisation of its visible world points is a similarity of those
+    coordinates, under which the moments transform by a congruence (`_renormalised`). Its
+    rounding is ~eps s^2 |c|^2: the distance of the visible points' centroid from the origin in
+    units of their spread, squared (~3 for the box corner). A camera for which that exceeds
+    `_FAR` (a target far from the world's origin, a small part of a large one) gets the moments
+    of its own normalised points, as world points given per camera and float32 always do. No
+    frame is computed from the points: hidden values cannot change a bit of any camera's result.
     """
     dtype = pixels.dtype
     finite_world = jnp.all(jnp.isfinite(world), -1)
@@ -125,31 +125,42 @@ def _moments(world, pixels, mask):
     s2, c2 = _frame(pixels, w)
     u, v = (s2[:, None] * (pixels[..., k] - c2[:, k, None]) for k in range(2))
     weights = jnp.stack([w, w * u, w * v, w * (u * u + v * v)])  # (4, C, N)
+    # (in float32 the congruence's rounding, ~3 eps on the box corner, made P ~4x as far from the
+    # SVD's as the cameras' own moments do: there, as for world points per camera, those)
+    if world.ndim == 3 or dtype != jnp.float64:
+        S, s3, c3 = _own_moments(world, visible, weights)
+        return S, _frobenius(S), s3, c3, s2, c2
 
-    seen = finite_world if world.ndim == 2 else visible
-    world = jnp.where(seen[..., None], world, 0.0)
-    scale, centre = jax.lax.stop_gradient(_frame(world, seen.astype(dtype)))
-    X = jnp.where(seen[..., None], scale[..., None, None] * (world - centre[..., None, :]), 0.0)
-    spec = "np,mcn->mpc" if world.ndim == 2 else "cnp,mcn->mpc"
-    S, s, c = _renormalised(jnp.einsum(spec, _products(X), weights))
+    products = _products(jnp.where(finite_world[:, None], world, 0.0))
+    fits = jnp.all(jnp.isfinite(products), -1)  # (a point beyond sqrt of the largest float)
+    products = jnp.where(fits[:, None], products, 0.0)
+    shared = _renormalised(jnp.einsum("np,mcn->mpc", products, weights))
+    s3, c3 = shared[1:]
+    far = ~(s3 * s3 * jnp.sum(c3 * c3, -1) <= _FAR) | jnp.any(visible & ~fits, -1)
 
-    # The congruence's rounding is ~eps s^2 |c|^2 of the moments: the distance of the frame's
-    # centre from the camera's visible points in units of their spread, squared. Where that is
-    # large (a camera that sees a small part of a large target), the camera's moments are formed
-    # again from the products of its own normalised points; only where there is such a camera.
-    far = s * s * jnp.sum(c * c, -1) > _FAR
+    def own(shared):  # only where there is such a camera
+        return jax.tree_util.tree_map(
+            lambda a, b: jnp.where(far if a.ndim != 2 else far[:, None], a, b),
+            _own_moments(world, visible, weights), shared,
+        )  # fmt: skip
 
-    def own_frames(S):
-        own = s[:, None, None] * (X - c[:, None, :])  # (C, N, 3)
-        return jnp.where(far, jnp.einsum("cnp,mcn->mpc", _products(own), weights), S)
-
-    S = jax.lax.cond(jnp.any(far), own_frames, lambda S: S, S)
-    return S, _frobenius(S), s * scale, centre + c / scale[..., None], s2, c2
+    S, s3, c3 = jax.lax.cond(jnp.any(far), own, lambda shared: shared, shared)
+    return S, _frobenius(S), s3, c3, s2, c2
 
 
-# The largest s^2 |c|^2 of a camera's normalisation in the world points' frame whose moments come
-# from the frame's (`_moments`): P then within ~5e-14 (relative) of the SVD's, where a camera that
-# sees a tenth of the target's extent (s^2 |c|^2 ~ 200) had 3e-12, a hundredth (~15000) 5e-10.
+def _own_moments(world, visible, weights):
+    """The moments `(4, 10, C)` of each camera's own normalised visible world points, and the
+    normalisation `s (C,)`, `c (C, 3)` (`_frame`), from the pixel weights `(4, C, N)`."""
+    world = jnp.where(visible[..., None], world, 0.0)  # (C, N, 3)
+    s, c = _frame(world, visible.astype(world.dtype))
+    X = jnp.where(visible[..., None], s[:, None, None] * (world - c[:, None, :]), 0.0)
+    return jnp.einsum("cnp,mcn->mpc", _products(X), weights), s, c
+
+
+# The largest s^2 |c|^2 of a camera's normalisation of the shared target's coordinates whose
+# moments come from the target's (`_moments`): P then within ~5e-14 (relative) of the SVD's; a
+# camera that sees a tenth of the target's extent (s^2 |c|^2 ~ 200) had 3e-12, a hundredth
+# (~15000) 5e-10.
 _FAR = 16.0
 
 
@@ -160,9 +171,9 @@ def _products(X):
 
 
 def _renormalised(S):
-    """The moments `S (4, 10, C)` of the world points in one frame to those of each camera's
-    normalised world points `s (x - c)`, with `s (C,)` and `c (C, 3)` the camera's own
-    normalisation (`_frame` over its visible points) in that frame.
+    """The moments `S (4, 10, C)` of the world points `x` to those of each camera's normalised
+    world points `s (x - c)`, with `s (C,)` and `c (C, 3)` the camera's normalisation (`_frame`
+    over its visible points), which the moments give.
 
     Each block `M = [[A, b], [b^T, d]]` goes to `T M T^T` with `T = [[s I, -s c], [0, 1]]`:
     `[[s^2 (A - b c^T - c b^T + d c c^T), s (b - d c)], [., d]]`. The first block's `d` is the

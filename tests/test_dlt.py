@@ -161,10 +161,10 @@ def test_nearly_coplanar_points_with_noise_give_the_svds_answer():
 
 
 def test_a_camera_that_sees_a_small_part_of_a_shared_target_gets_the_svds_answer():
-    # A shared target's moments are formed in a frame of its own and moved to each camera's
+    # A shared target's moments come from its own coordinates, moved to each camera's
     # normalisation by a congruence, which loses ~eps (distance / spread)^2 where a camera sees
-    # only a small far part of the target: for a hundredth of its extent P came out 5e-10 off
-    # the SVD's. Such cameras get the moments of their own normalised points.
+    # only a small part of the target far from its origin: for a hundredth of its extent P came
+    # out 5e-10 off the SVD's. Such cameras get the moments of their own normalised points.
     box = np.asarray(mc.targets.box_corner().points)
     lo, hi = box.min(0), box.max(0)
     rng = np.random.default_rng(7)
@@ -295,7 +295,8 @@ def test_masked_points_have_no_influence():
     world[~mask] = np.inf
     np.testing.assert_array_equal(mc.dlt(world, pixels, mask), P_own)
     np.testing.assert_array_equal(mc.dlt(rig.world, pixels, mask), P)
-    # (a shared target's moments are formed in a frame of its own: the same to rounding)
+    # (a shared target's moments come from its own coordinates, moved to each camera's
+    # normalisation by a congruence: the same to rounding)
     np.testing.assert_allclose(P_own, P, rtol=1e-12, atol=0)
     # and the result is the DLT of the visible points alone
     keep = mask[2]
