@@ -95,9 +95,10 @@ _ENTRY = {**{p: k for k, p in enumerate(_PAIRS)}, **{p[::-1]: k for k, p in enum
 
 def _moments(world, pixels, mask):
     """The distinct entries `(4, 10, C)` of the four 4 x 4 blocks of each camera's `L^T L` (L of
-    eq. 11, of its normalised points), `||L||_F`, and the normalisations: `s3 (C,)`, `c3 (C, 3)`
-    of the world points and `s2 (C,)`, `c2 (C, 2)` of the pixels; for `pixels (C, N, 2)`,
-    `mask (C, N)` of visible points and `world (N, 3)` shared by the cameras or `(C, N, 3)`.
+    eq. 11, of its normalised points), the points it used (`visible (C, N)`: in the mask and
+    finite), `||L||_F`, and the normalisations: `s3 (C,)`, `c3 (C, 3)` of the world points and
+    `s2 (C,)`, `c2 (C, 2)` of the pixels; for `pixels (C, N, 2)`, `mask (C, N)` of visible points
+    and `world (N, 3)` shared by the cameras or `(C, N, 3)`.
 
     With X the homogeneous world point and (u, v) its pixel, a point adds to `L^T L` the blocks
     `X X^T` (twice, for the rows of P1 and P2), `-u X X^T`, `-v X X^T` and `(u^2 + v^2) X X^T`:
@@ -129,23 +130,27 @@ def _moments(world, pixels, mask):
     # SVD's as the cameras' own moments do: there, as for world points per camera, those)
     if world.ndim == 3 or dtype != jnp.float64:
         S, s3, c3 = _own_moments(world, visible, weights)
-        return S, _frobenius(S), s3, c3, s2, c2
+    else:
+        S, s3, c3 = _shared_moments(world, finite_world, visible, weights)
+    return S, visible, _frobenius(S), s3, c3, s2, c2
 
+
+def _shared_moments(world, finite_world, visible, weights):
+    """`_moments` of a target `world (N, 3)` shared by the cameras: one matrix product in its own
+    coordinates, then each camera's normalisation by `_renormalised`; a camera too far from the
+    origin for that (`_FAR`), or that sees a point whose products overflow, by `_own_moments`."""
     products = _products(jnp.where(finite_world[:, None], world, 0.0))
     fits = jnp.all(jnp.isfinite(products), -1)  # (a point beyond sqrt of the largest float)
     products = jnp.where(fits[:, None], products, 0.0)
-    shared = _renormalised(jnp.einsum("np,mcn->mpc", products, weights))
-    s3, c3 = shared[1:]
-    far = ~(s3 * s3 * jnp.sum(c3 * c3, -1) <= _FAR) | jnp.any(visible & ~fits, -1)
+    S, s, c = _renormalised(jnp.einsum("np,mcn->mpc", products, weights))
+    # (written so that NaN counts as far)
+    far = ~(s * s * jnp.sum(c * c, -1) <= _FAR) | jnp.any(visible & ~fits, -1)
 
     def own(shared):  # only where there is such a camera
-        return jax.tree_util.tree_map(
-            lambda a, b: jnp.where(far if a.ndim != 2 else far[:, None], a, b),
-            _own_moments(world, visible, weights), shared,
-        )  # fmt: skip
+        (S, s, c), (S_own, s_own, c_own) = shared, _own_moments(world, visible, weights)
+        return jnp.where(far, S_own, S), jnp.where(far, s_own, s), jnp.where(far[:, None], c_own, c)
 
-    S, s3, c3 = jax.lax.cond(jnp.any(far), own, lambda shared: shared, shared)
-    return S, _frobenius(S), s3, c3, s2, c2
+    return jax.lax.cond(jnp.any(far), own, lambda shared: shared, (S, s, c))
 
 
 def _own_moments(world, visible, weights):
@@ -581,20 +586,14 @@ def _rms(P, world, pixels, visible, depth):
     return jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(visible), 1))
 
 
-def _visible(world, pixels, mask):
-    """One camera's visible points, with hidden ones replaced by 0 before any arithmetic, so that
-    neither their values nor NaN/inf in them can reach the result or its derivative; and whether
-    every point in the mask is finite."""
-    finite = jnp.all(jnp.isfinite(world), -1) & jnp.all(jnp.isfinite(pixels), -1)
-    visible = mask & finite
+def _camera(world, pixels, mask, visible, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms):
+    """One camera from its eigenvector `v (12,)` and the points `_moments` used (`visible`): P
+    (3, 4), status, condition number, mirrored."""
+    # hidden points replaced by 0 before any arithmetic, so that neither their values nor NaN/inf
+    # in them can reach the result or its derivative
     world = jnp.where(visible[:, None], world, 0.0)
     pixels = jnp.where(visible[:, None], pixels, 0.0)
-    return world, pixels, visible, jnp.all(finite | ~mask)
-
-
-def _camera(world, pixels, mask, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms):
-    """One camera from its eigenvector `v (12,)`: P (3, 4), status, condition number, mirrored."""
-    world, pixels, visible, all_finite = _visible(world, pixels, mask)
+    all_finite = jnp.all(visible | ~mask)  # (visible = mask & finite)
     # De-normalised, P = T2^-1 V T3 with T = [[s I, -s c], [0, 1]], written out.
     V = v.reshape(3, 4)
     V = jnp.concatenate([s3 * V[:, :3], V[:, 3:] - s3 * _dot3(V[:, :3].T, c3)[:, None]], axis=1)
@@ -679,14 +678,14 @@ def _solve(world, pixels, mask, rcond, max_relative_rms):
     de-normalised P and its checks."""
     # (the scopes name the stages in profiles: benchmarks/profile_dlt.py)
     with jax.named_scope("moments"):
-        S, *normalisation = _moments(world, pixels, mask)
+        S, visible, *normalisation = _moments(world, pixels, mask)
     with jax.named_scope("eigen"):
         v, s_11 = _eigen(S)
     camera = functools.partial(_camera, rcond=rcond, max_relative_rms=max_relative_rms)
     with jax.named_scope("cameras"):
         return jnp.vectorize(
-            camera, signature="(n,3),(n,2),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"
-        )(world, pixels, mask, jnp.moveaxis(v, 0, -1), s_11, *normalisation)
+            camera, signature="(n,3),(n,2),(n),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"
+        )(world, pixels, mask, visible, jnp.moveaxis(v, 0, -1), s_11, *normalisation)
 
 
 def check_relative_rms(value) -> float:
