@@ -253,9 +253,10 @@ def _eigen(S):
     # A 4 x 4 block's rows are vectors of several right-hand sides at once: fewer, wider
     # operations than entry by entry.
     L0 = _small.cholesky(S0, floor)
-    K = jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([Su, Sv], 1))))
-    Ku, Kv = K[:, :4], K[:, 4:]
-    R = Sq - _times(Su, Ku) - _times(Sv, Kv)
+    # (into memory, and sliced where used: else XLA recomputed each half of K from the solve's
+    # inputs for the loop below, which takes them as operands)
+    K = _small.materialised(jnp.stack(_small.cho_solve(L0, list(jnp.concatenate([Su, Sv], 1)))))
+    R = Sq - _times(Su, K[:, :4]) - _times(Sv, K[:, 4:])
     LR = _small.cholesky(R, floor)
 
     def solve(X):
@@ -268,7 +269,7 @@ def _eigen(S):
         x3 = _small.materialised(
             jnp.stack(_small.cho_solve(LR, list(X[8:] + _times(Su, y1) + _times(Sv, y2))))
         )
-        return jnp.concatenate([y1 + _times(Ku, x3), y2 + _times(Kv, x3), x3])
+        return jnp.concatenate([y1 + _times(K[:, :4], x3), y2 + _times(K[:, 4:], x3), x3])
 
     def along(u, x):
         """The components of `x` along `u`, per camera."""

@@ -265,7 +265,12 @@ def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
         whole, chunked = solve(world, None), solve(world, 16)  # four chunks of 13
         np.testing.assert_array_equal(chunked[1], whole[1])  # status
         assert {3, 7, 49} <= set(np.flatnonzero(whole[1] != mc.Status.OK))
-        np.testing.assert_allclose(chunked[0], whole[0], rtol=1e-12, atol=0)  # P, NaN alike
+        # P, NaN alike, to rounding of each camera's largest entry: XLA's vectorised loops over
+        # 13 and over 50 cameras round differently in the last bits (measured 2e-14 of the
+        # largest entry; entry by entry, 2e-12 of an entry a millionth of it)
+        scale = np.abs(whole[0]).max(axis=(1, 2), initial=0.0, where=np.isfinite(whole[0]))
+        scale = np.where(scale > 0, scale, 1.0)[:, None, None]
+        np.testing.assert_allclose(chunked[0] / scale, whole[0] / scale, rtol=0, atol=1e-13)
         # condition; where s_11 is zero (five points) it is rounding, at any batch size > 1/rcond
         solved = whole[1] != mc.Status.TOO_FEW_POINTS
         np.testing.assert_allclose(chunked[2][solved], whole[2][solved], rtol=1e-12)
