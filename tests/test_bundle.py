@@ -294,15 +294,26 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
     linear_solver = captured["solver"].descent.linear_solver
     assert isinstance(linear_solver, mc._bundle._BlockLSMR)
     lam = 0.3
-    _, jvp = jax.linearize(lambda y: mc._bundle._residuals(y, problem), y0)
-    damped = lambda y: (jvp(y), jax.tree_util.tree_map(lambda x: np.sqrt(lam) * x, y))  # noqa: E731
-    operator = lx.FunctionLinearOperator(damped, jax.eval_shape(lambda: y0))
-    M = mc._bundle._preconditioner(operator, linear_solver.anchor_ids)
-    flat, unravel = jax.flatten_util.ravel_pytree(y0)
-    A = jax.jacfwd(
-        lambda z: jax.flatten_util.ravel_pytree(damped(mc._bundle._precondition(M, unravel(z))))[0]
-    )(flat)
-    N = np.asarray(A.T @ A)
+
+    @eqx.filter_jit  # one compiled program: run op by op, these took ~35 s a case
+    def whitened_and_step(problem, y0, linear_solver):
+        _, jvp = jax.linearize(lambda y: mc._bundle._residuals(y, problem), y0)
+
+        def damped(y):
+            return jvp(y), jax.tree_util.tree_map(lambda x: np.sqrt(lam) * x, y)
+
+        operator = lx.FunctionLinearOperator(damped, jax.eval_shape(lambda: y0))
+        M = mc._bundle._preconditioner(operator, linear_solver.anchor_ids)
+        flat, unravel = jax.flatten_util.ravel_pytree(y0)
+        ravel = lambda x: jax.flatten_util.ravel_pytree(x)[0]  # noqa: E731
+        A = jax.jacfwd(lambda z: ravel(damped(mc._bundle._precondition(M, unravel(z)))))(flat)
+        r = mc._bundle._residuals(y0, problem)
+        zero = jax.tree_util.tree_map(jnp.zeros_like, y0)
+        sol = lx.linear_solve(operator, (r, zero), linear_solver)
+        J = jax.jacfwd(lambda z: ravel(jvp(unravel(z))))(flat)
+        return A.T @ A, J, ravel(r), ravel(sol.value)
+
+    N, J, r_flat, step = map(np.asarray, whitened_and_step(problem, y0, linear_solver))
     if case == "anchors":
         np.testing.assert_allclose(N, np.eye(len(N)), atol=1e-7)
     else:  # ravel_pytree orders the keys: "X" before "cams"
@@ -313,12 +324,7 @@ def test_block_preconditioner_whitens_the_step_normal_matrix(monkeypatch, case):
             block = slice(n_X + c * p, n_X + (c + 1) * p)
             np.testing.assert_allclose(N[block, block], np.eye(p), atol=1e-7)
         assert np.abs(N[n_X:, n_X:] - np.eye(C * p)).max() > 0.01  # coupled through the points
-    r = mc._bundle._residuals(y0, problem)
-    sol = lx.linear_solve(operator, (r, jax.tree_util.tree_map(jnp.zeros_like, y0)), linear_solver)
-    J = jax.jacfwd(lambda z: jax.flatten_util.ravel_pytree(jvp(unravel(z)))[0])(flat)
-    r_flat = jax.flatten_util.ravel_pytree(r)[0]
-    expected = np.linalg.solve(J.T @ J + lam * np.eye(len(flat)), J.T @ r_flat)
-    step = jax.flatten_util.ravel_pytree(sol.value)[0]
+    expected = np.linalg.solve(J.T @ J + lam * np.eye(J.shape[1]), J.T @ r_flat)
     np.testing.assert_allclose(step, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
 
 
