@@ -273,7 +273,19 @@ def test_a_rig_solved_in_chunks_equals_one_batch(monkeypatch):
         np.testing.assert_allclose(chunked[0] / scale, whole[0] / scale, rtol=0, atol=1e-13)
         # condition; where s_11 is zero (five points) it is rounding, at any batch size > 1/rcond
         solved = whole[1] != mc.Status.TOO_FEW_POINTS
-        np.testing.assert_allclose(chunked[2][solved], whole[2][solved], rtol=1e-12)
+        # The estimate is not the same to rounding everywhere: where v went on as a block with
+        # the second vector, the block stops at the step where v stops changing in its last
+        # bits, and its Ritz value moves ~1e-3 a step where s_11 and s_10 are close (0.79 apart
+        # here): on an AMD EPYC one camera's block stopped a step earlier in a chunk (7.6116
+        # against 7.6174; the SVD's 7.6317). Most cameras agree to rounding, and every one is
+        # within the estimate's accuracy of the SVD's (`test_inverse_iteration_equals_...`).
+        same = np.isclose(chunked[2][solved], whole[2][solved], rtol=1e-12, atol=0)
+        assert same.mean() >= 0.9, np.flatnonzero(~same)
+        for i in np.flatnonzero(whole[1] == mc.Status.OK):
+            visible = mask[i]
+            exact = svd_dlt(np.asarray(rig.world)[visible], pixels[i][visible])[1]
+            for condition in (chunked[2][i], whole[2][i]):
+                assert 0.95 * exact <= condition <= exact * (1 + 1e-9), (i, condition, exact)
         assert np.all(chunked[2][~solved] > 1e8) and np.all(whole[2][~solved] > 1e8)
         np.testing.assert_array_equal(chunked[3], whole[3])  # mirrored
 
@@ -301,8 +313,9 @@ def test_masked_points_have_no_influence():
     np.testing.assert_array_equal(mc.dlt(world, pixels, mask), P_own)
     np.testing.assert_array_equal(mc.dlt(rig.world, pixels, mask), P)
     # (a shared target's moments come from its own coordinates, moved to each camera's
-    # normalisation by a congruence: the same to rounding)
-    np.testing.assert_allclose(P_own, P, rtol=1e-12, atol=0)
+    # normalisation by a congruence: the same to rounding; measured 1.5e-12 on an AMD EPYC, on
+    # an entry that cancels to 1e-3 of its row)
+    np.testing.assert_allclose(P_own, P, rtol=1e-11, atol=0)
     # and the result is the DLT of the visible points alone
     keep = mask[2]
     np.testing.assert_allclose(
