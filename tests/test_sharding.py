@@ -222,10 +222,13 @@ def test_shard_refuses_what_is_not_a_mesh():
 
 
 def _run_on_two_host_devices(code: str, timeout: float) -> str:
-    """The standard output of `code` run in a fresh process with 2 host devices."""
+    """The standard output of `code` run in a fresh process with 2 host devices, compiled as
+    this process compiles (with XLA's older CPU emitters where conftest chose them: these checks
+    are of finishing and agreeing to 1e-9, not of the last bits)."""
+    flags = [*os.environ.get("XLA_FLAGS", "").split(), "--xla_force_host_platform_device_count=2"]
     env = dict(
         os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        XLA_FLAGS=" ".join(flags),
         JAX_ENABLE_X64="1",
         JAX_PLATFORMS="cpu",
         PYTHONPATH=os.pathsep.join(
