@@ -235,7 +235,11 @@ def _eigen(S):
     two smallest come within a ratio of 0.66, where v alone was still 35 % off after 8 steps),
     until its change is below rounding or `_MAX_STEPS` (16); nearly degenerate points go on with
     v alone, for at most `_PLAIN_STEPS` (8). The loop runs while any camera goes on, the others
-    keeping their vectors, so that each camera's answer is the same in any batch.
+    keeping their vectors, so that each camera's answer is the same in any batch: its vector to
+    rounding. (Its `s_11`, where the block went on, to the estimate's accuracy: the block stops
+    at the step where v stops changing in its last bits, which the rounding of the compiled
+    program can move by one, and its Ritz value moves ~1e-3 a step where s_11 and s_10 are
+    close.)
 
     `s_11` comes from a second vector z, iterated in the same solves as v for its first
     `_MIN_STEPS`, then alone up to `_Z_STEPS` (5: a fixed number, so that the estimate does not
