@@ -212,8 +212,9 @@ def _blocks(S):
 def _normal_map():
     """`L^T L = [[S0, 0, -Su], [0, S0, -Sv], [-Su, -Sv, Sq]]` as a linear map `(12, 12, 4, 10)` of
     the moments: every entry is +-1 times one of them, so that a product with it is exact."""
+    # (moment, first row, first column, sign) of each block
     blocks = [(0, 0, 0, 1), (0, 4, 4, 1), (1, 0, 8, -1), (1, 8, 0, -1), (2, 4, 8, -1),
-              (2, 8, 4, -1), (3, 8, 8, 1)]  # fmt: skip (moment, first row, first column, sign)
+              (2, 8, 4, -1), (3, 8, 8, 1)]  # fmt: skip
     M = np.zeros((12, 12, 4, 10))
     for m, row, col, sign in blocks:
         for (i, j), k in _ENTRY.items():
