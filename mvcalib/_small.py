@@ -66,12 +66,29 @@ def triple(a, b, c):
     return dot3(a, cross)
 
 
-def normalised(x):
-    """`x` over its length, for a list of entries or an array of vectors `(n, *batch)`."""
-    if isinstance(x, list):
-        length = jnp.sqrt(sum(xi * xi for xi in x))
-        return [xi / length for xi in x]
-    return x / jnp.sqrt(leading_sum(x * x))
+def adjugate(A):
+    """The adjugate `det(A) A^-1` of the 4 x 4 `A` (rows of entries), as rows of entries: its
+    cofactors by Laplace expansion over the 2 x 2 minors of the first two and last two rows,
+    products and sums only."""
+
+    def minor(r, a, b):  # the 2 x 2 minor of rows r, r + 1 and columns a, b
+        return A[r][a] * A[r + 1][b] - A[r + 1][a] * A[r][b]
+
+    s = {(a, b): minor(0, a, b) for a in range(4) for b in range(a + 1, 4)}
+    c = {(a, b): minor(2, a, b) for a in range(4) for b in range(a + 1, 4)}
+
+    def cofactor(i, j):  # (-1)^(i+j) times the determinant of A without row i and column j
+        rows, minors = ((2, 3), c) if i < 2 else ((0, 1), s)
+        other = 1 - i if i < 2 else 5 - i  # the row of the 2 x 2 block that remains
+        cols = [k for k in range(4) if k != j]
+        # expand along the remaining row of i's block, the first row of the 3 x 3 minor for
+        # i < 2 and its last for i >= 2 (the same alternating signs): each entry times the 2 x 2
+        # minor of the other block's rows in the two other columns
+        terms = [A[other][k] * minors[tuple(x for x in cols if x != k)] for k in cols]
+        value = terms[0] - terms[1] + terms[2]
+        return value if (i + j) % 2 == 0 else -value
+
+    return [[cofactor(j, i) for j in range(4)] for i in range(4)]
 
 
 def leading_sum(x):

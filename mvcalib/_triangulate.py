@@ -86,21 +86,30 @@ def _null_vector(G):
     (the trailing axes) it is a few fused elementwise loops, where `eigh` runs LAPACK on one tiny
     matrix after another.
 
+    Each step multiplies by the adjugate `adj(G) = det(G) G^-1` (`_small.adjugate`: products and
+    sums of G's entries, no division), so that XLA computes the matrix in one loop and each step
+    in one more. A Cholesky factor's solves, whose divisions and square roots XLA keeps in
+    kernels of their own, made ~80 kernels per chunk of points: 100k points of 8 views took
+    0.46 µs/point, now 0.41 (in-process A/B), and noise-free points come out closer to the
+    truth (RMS 6.7e-14 against 2.7e-13 mm; float32 5.9e-5 against 1.2e-4). `G` gets eps times its
+    trace on the diagonal, so that the adjugate of a matrix of rank below 3 (a point whose
+    views' rays all coincide) is not zero.
+
     The start is the homogeneous coordinate `(0, 0, 0, 1)`; its first step is the inhomogeneous
     least-squares point. In the normalised frame the point is within a few spreads of the
     origin, so the start is far from orthogonal to the answer, and each step multiplies the
     error by the ratio of the two smallest eigenvalues (noise over the rays' angle squared:
     1e-4 for 0.3 px and rays 5 degrees apart on a 1000 px focal length).
     """
-    rows = [[G[i, j] for j in range(4)] for i in range(4)]
     floor = jnp.finfo(G.dtype).eps * (G[0, 0] + G[1, 1] + G[2, 2] + G[3, 3])
-    L = _small.cholesky(rows, floor)
-    # Unrolled, entry by entry: the steps fuse into one elementwise loop over the points (a
-    # fori_loop over (4,) vectors was 3.5x slower).
-    v = [jnp.zeros_like(floor)] * 3 + [jnp.ones_like(floor)]
-    for _ in range(_STEPS):
-        v = _small.normalised(_small.cho_solve(L, v))
-    return jnp.stack(v)
+    rows = [[G[i, j] + floor if i == j else G[i, j] for j in range(4)] for i in range(4)]
+    A = _small.materialised(jnp.stack([jnp.stack(row) for row in _small.adjugate(rows)]))
+    v = A[:, 3]  # the first step, from (0, 0, 0, 1)
+    for step in range(_STEPS):
+        if step:
+            v = _small.materialised(sum(A[:, j] * v[j] for j in range(4)))
+        v = v * jax.lax.rsqrt(sum(v[i] * v[i] for i in range(4)))
+    return v
 
 
 @_null_vector.defjvp
