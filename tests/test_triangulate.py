@@ -231,6 +231,31 @@ def test_points_match_a_per_point_numpy_svd_reference():
     assert float(np.sqrt(np.mean(np.sum((reference - np.asarray(world)) ** 2, -1)))) > 1e-3
 
 
+def test_the_null_vector_is_lapacks_smallest_eigenvector():
+    """The point's 4 x 4 null vector, by inverse iteration with the adjugate, against NumPy's
+    determinant and inverse and LAPACK's eigenvectors, down to a matrix of rank 2 (every view's
+    ray the same line), where it must stay finite."""
+    from mvcalib import _small, _triangulate
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((6, 4, 4))
+    for a in A:
+        adj = np.array(_small.adjugate([[a[i, j] for j in range(4)] for i in range(4)]), float)
+        expected = np.linalg.det(a) * np.linalg.inv(a)
+        np.testing.assert_allclose(adj, expected, atol=1e-13 * np.abs(expected).max())
+    # symmetric positive semi-definite, smallest eigenvalue from 0 to 1e-2 of the largest
+    Q = np.linalg.qr(rng.standard_normal((7, 4, 4)))[0]
+    values = np.array([[3.0, 2.0, 1.0, e] for e in (0.0, 1e-12, 1e-8, 1e-4, 1e-2, 0.0, 0.0)])
+    values[5, 2:] = [1e-3, 0.0]  # two small: the next one 1e-3
+    values[6, 2:] = 0.0  # rank 2
+    G = np.einsum("kij,kj,klj->kil", Q, values, Q)
+    v = np.asarray(_triangulate._null_vector(jnp.asarray(np.moveaxis(G, 0, -1))))  # (4, 7)
+    assert np.all(np.isfinite(v))
+    for k in range(6):
+        w = np.linalg.eigh(G[k])[1][:, 0]
+        np.testing.assert_allclose(abs(w @ v[:, k]), 1.0, atol=1e-12, err_msg=str(values[k]))
+
+
 def test_chunks_of_points_equal_one_batch(monkeypatch):
     # On a CPU, points are triangulated in equal chunks (padded with copies of the last point); the
     # chunked answer must be the one-batch answer, hidden views and all.
