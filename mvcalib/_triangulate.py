@@ -77,6 +77,8 @@ def _congruence(G, s, d):
 
 
 _STEPS = 6
+# Up to this many views, the widest ray angle compares every pair written out (120 at 16 views).
+_PAIRED_VIEWS = 16
 
 
 @jax.custom_jvp
@@ -147,19 +149,27 @@ def _diagnostics(cameras: Camera, X, u, v, m):
     q = cameras.project(X)
     err2 = (q[..., 0] - u) ** 2 + (q[..., 1] - v) ** 2
     rms = jnp.sqrt(views @ (w * err2) / jnp.maximum(n, 1.0))
-    # Unit rays from the centres, by component (C, N); then, one view at a time, its cosines
-    # with every view, keeping the smallest over pairs of views that see the point (a view with
-    # itself gives 1): the widest angle.
+    # Unit rays from the centres, by component (C, N); the widest angle is the smallest cosine
+    # between the rays of two views that see the point.
     rays = [X[:, k] - cameras.center[:, k, None] for k in range(3)]
     length = jnp.sqrt(sum(r * r for r in rays))
     rays = jax.lax.optimization_barrier([r / length for r in rays])  # not recomputed per view
 
-    def smallest(a, cos):
-        return jnp.minimum(cos, jnp.where(m[a] & m, sum(r[a] * r for r in rays), 1.0))
+    def cosines(a, b):  # of view a with view (or views) b
+        return jnp.where(m[a] & m[b], sum(r[a] * r[b] for r in rays), 1.0)
 
-    cos = jax.lax.fori_loop(1, w.shape[0], smallest, smallest(0, 1.0))
+    C = w.shape[0]
+    if C <= _PAIRED_VIEWS:
+        # every pair written out, one elementwise loop over the points (100k points of 8 views:
+        # 0.37-0.39 against 0.40-0.42 µs/point with the loop below and its minimum over views)
+        pairs = [cosines(a, b) for a in range(C) for b in range(a + 1, C)]
+        cos = functools.reduce(jnp.minimum, pairs)
+    else:  # one view at a time against all (a view with itself gives 1)
+        every = slice(None)
+        smallest = lambda a, cos: jnp.minimum(cos, cosines(a, every))  # noqa: E731
+        cos = jnp.min(jax.lax.fori_loop(1, C, smallest, cosines(0, every)), 0)
     # (a point seen once has cosine 1, where arccos' slope is infinite: kept off it)
-    cos = jnp.where(n >= 2, jnp.clip(jnp.min(cos, 0), -1.0, 1.0), 0.0)
+    cos = jnp.where(n >= 2, jnp.clip(cos, -1.0, 1.0), 0.0)
     angle = jnp.degrees(jnp.arccos(cos))
     in_front = views @ (w * (cameras.depth(X) <= 0)) == 0
     # A point seen by fewer than two views has no position: its diagnostics are NaN, not

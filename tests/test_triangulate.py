@@ -256,6 +256,29 @@ def test_the_null_vector_is_lapacks_smallest_eigenvector():
         np.testing.assert_allclose(abs(w @ v[:, k]), 1.0, atol=1e-12, err_msg=str(values[k]))
 
 
+def test_widest_angle_is_the_same_by_pairs_and_by_views(monkeypatch):
+    """Up to `_PAIRED_VIEWS` views every pair is written out, beyond by a loop over the views:
+    both give the same angle, with hidden views (and points seen once) taken out alike."""
+    from mvcalib import _triangulate
+
+    cameras, world = ring(6, seed=4)
+    pixels = cameras.project(world)
+    mask = jax.random.uniform(jax.random.key(4), pixels.shape[:-1]) > 0.4
+    paired = mc.triangulate(cameras, pixels, mask)
+    monkeypatch.setattr(_triangulate, "_PAIRED_VIEWS", 0)
+    looped = mc.triangulate(cameras, pixels, mask)
+    assert np.isnan(paired.angle).any() and (np.asarray(paired.views) > 2).any()
+    np.testing.assert_array_equal(np.isnan(paired.angle), np.isnan(looped.angle))
+    np.testing.assert_allclose(paired.angle, looped.angle, rtol=1e-12)
+    # against the rays' angles in NumPy, pair by pair
+    X, centres = np.asarray(paired.points), np.asarray(cameras.center)
+    for n in np.flatnonzero(np.asarray(paired.views) >= 2)[:20]:
+        rays = X[n] - centres[np.asarray(mask[:, n])]
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        widest = np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1, 1)))
+        np.testing.assert_allclose(paired.angle[n], widest, rtol=1e-9)
+
+
 def test_chunks_of_points_equal_one_batch(monkeypatch):
     # On a CPU, points are triangulated in equal chunks (padded with copies of the last point); the
     # chunked answer must be the one-batch answer, hidden views and all.
