@@ -152,8 +152,10 @@ def _diagnostics(cameras: Camera, X, u, v, m):
     # Unit rays from the centres, by component (C, N); the widest angle is the smallest cosine
     # between the rays of two views that see the point.
     rays = [X[:, k] - cameras.center[:, k, None] for k in range(3)]
-    length = jnp.sqrt(sum(r * r for r in rays))
-    rays = jax.lax.optimization_barrier([r / length for r in rays])  # not recomputed per view
+    # (into memory, not recomputed per pair; by one reciprocal square root rather than a square
+    # root and three divisions: 0.32-0.34 against 0.35-0.37 µs/point, in-process A/B)
+    scale = jax.lax.rsqrt(sum(r * r for r in rays))
+    rays = jax.lax.optimization_barrier([r * scale for r in rays])
 
     def cosines(a, b):  # of view a with view (or views) b
         return jnp.where(m[a] & m[b], sum(r[a] * r[b] for r in rays), 1.0)
