@@ -78,7 +78,7 @@ def adjugate(A):
     c = {(a, b): minor(2, a, b) for a in range(4) for b in range(a + 1, 4)}
 
     def cofactor(i, j):  # (-1)^(i+j) times the determinant of A without row i and column j
-        rows, minors = ((2, 3), c) if i < 2 else ((0, 1), s)
+        minors = c if i < 2 else s  # of the other block's rows
         other = 1 - i if i < 2 else 5 - i  # the row of the 2 x 2 block that remains
         cols = [k for k in range(4) if k != j]
         # expand along the remaining row of i's block, the first row of the 3 x 3 minor for
