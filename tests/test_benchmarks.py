@@ -5,9 +5,13 @@ import importlib
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import time
+
+import numpy as np
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -61,6 +65,25 @@ def test_profile_dlt_attributes_the_kernels_to_the_dlt_stages(capsys):
     for stage in ("moments", "eigen", "cameras", "decompose"):
         assert float(rows[stage][1]) > 0, stage  # µs per camera
         assert int(rows[stage][3]) > 0, stage  # kernels per call
+
+
+def test_floor_refine_takes_each_piece_at_its_best_batch(capsys):
+    floor_refine = benchmark_module("floor_refine")
+    floor_refine.main(["--cameras", "8", "--scipy-cameras", "2", "--calls", "2"])
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    rows = [line.split() for line in lines if line.split() and line.split()[0].isdigit()]
+    (best,) = [line.split()[1:] for line in lines if line.startswith(" best")]
+    assert [int(r[0]) for r in rows] == [8, 16, 32]  # up to 4x the rig
+    table = np.array([[float(x) for x in r[1:]] for r in rows])
+    assert np.all(table > 0)
+    np.testing.assert_allclose(table[:, :3].sum(1), table[:, 3], atol=0.011)  # rounding
+    np.testing.assert_allclose([float(x) for x in best[:3]], table[:, :3].min(0))
+    floor = float(best[3])
+    steps = float(re.search(r"per camera \(mean over 8\): ([\d.]+)", out).group(1))
+    scipy = float(re.search(r"SciPy lm loop: ([\d.]+)", out).group(1))
+    ceiling = float(re.search(r"camera-step\): ([\d.]+)x", out).group(1))
+    assert ceiling == pytest.approx(scipy / (steps * floor), rel=0.02, abs=0.06)
 
 
 def test_suite_smoke_run_writes_its_results_where_asked(tmp_path):
