@@ -196,10 +196,13 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
     run = functools.partial(
         _triangulate_points, cameras, min_angle=min_angle, refine=refine, max_steps=max_steps
     )
-    return _sharding.chunked_map(run, (pixels, mask), chunk, axis=1)
+    # (C, N) arrays per coordinate from here on, split before the chunks: XLA's loops over
+    # arrays with a trailing axis of length 2 are several times slower on a CPU, and moving the
+    # chunks' (x, y) pairs into place cost 2.6 ms of 36 for 100k points of 8 views
+    return _sharding.chunked_map(run, (pixels[..., 0], pixels[..., 1], mask), chunk, axis=1)
 
 
-def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
+def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     # Hartley's normalisation for triangulation: undistorted pixels to normalised camera
     # coordinates (K^-1 x), and the world frame moved to the cameras' centroid and scaled by
     # their spread, so that every entry of the linear system is of order one in float32 too.
@@ -207,11 +210,9 @@ def _triangulate_points(cameras, pixels, mask, min_angle, refine, max_steps):
     # that, as in pixel units, a pixel of noise counts the same in every camera.
     # Hidden pixels are replaced before any arithmetic, so that NaN in them reaches neither the
     # points nor their derivatives.
-    m = mask & jnp.isfinite(pixels[..., 0]) & jnp.isfinite(pixels[..., 1])
-    # (C, N) arrays per coordinate from here on: XLA's loops over arrays with a trailing axis of
-    # length 2 are several times slower on a CPU.
-    pu = jnp.where(m, pixels[..., 0], cameras.u0[:, None])
-    pv = jnp.where(m, pixels[..., 1], cameras.v0[:, None])
+    m = mask & jnp.isfinite(u) & jnp.isfinite(v)
+    pu = jnp.where(m, u, cameras.u0[:, None])
+    pv = jnp.where(m, v, cameras.v0[:, None])
     # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
     ideal = jax.lax.cond(
         jnp.any(cameras.dist != 0),
