@@ -172,7 +172,10 @@ def _diagnostics(cameras: Camera, X, u, v, m):
         cos = jnp.min(jax.lax.fori_loop(1, C, smallest, cosines(0, every)), 0)
     # (a point seen once has cosine 1, where arccos' slope is infinite: kept off it)
     cos = jnp.where(n >= 2, jnp.clip(cos, -1.0, 1.0), 0.0)
-    angle = jnp.degrees(jnp.arccos(cos))
+    # arccos(c) = 2 atan(sqrt((1 - c) / (1 + c))): XLA's CPU backend runs arctan as a vectorised
+    # loop and arccos (as arctan2) element by element, 2.2 against 9 ns a point (within 2.5 ulp
+    # of arccos, 5e-14 degrees); 1 - c is exact where c is near 1, and c = -1 gives atan(inf)
+    angle = jnp.degrees(2.0 * jnp.arctan(jnp.sqrt((1.0 - cos) / (1.0 + cos))))
     in_front = views @ (w * (cameras.depth(X) <= 0)) == 0
     # A point seen by fewer than two views has no position: its diagnostics are NaN, not
     # whatever the rounding of its stand-in happened to give.
