@@ -73,9 +73,7 @@ def main(argv=None):
     free = _refine._free_parameters(("k1", "k2", "p1", "p2"), (), False)  # noqa: SLF001
 
     def arguments(cam, pix, m):  # as `_refine._refine_one` builds them
-        p0 = _refine._pack(cam)  # noqa: SLF001
-        hidden = lambda x: jnp.where(m[:, None], x, 0.0)  # noqa: E731
-        return p0, cam.R, _refine._scales(p0), hidden(world), hidden(pix), m, None  # noqa: SLF001
+        return _refine._arguments(cam, world, pix, m, None)  # noqa: SLF001
 
     def evaluate(y, args):
         residuals = _refine._residuals(y, args, free).reshape(-1)  # noqa: SLF001

@@ -17,9 +17,10 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from . import _sharding, _validate
+from . import _sharding, _small, _validate
 from ._camera import Camera, finite_cameras, unit_camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
+from ._rotation import exp_and_left_jacobian
 
 PARAMETERS = (
     "alpha_u", "alpha_v", "u0", "v0", "skew",
@@ -396,36 +397,8 @@ def _pack(cam: Camera):
 def _unpack(p, R0) -> Camera:
     # The rotation is a small axis-angle increment applied to the seed's R: minimal (3 numbers),
     # well away from the singularities of any global parametrisation, and exactly R0 at 0.
-    R = jnp.stack([jnp.stack(row, -1) for row in _rotation(p[5:8], R0)[0]], -2)
+    R = jnp.stack([jnp.stack(row, -1) for row in exp_and_left_jacobian(p[5:8], R0)[0]], -2)
     return Camera(p[0], p[1], p[2], p[3], R, p[8:11], skew=p[4], dist=p[11:])
-
-
-def _rotation(w, R0):
-    """`rodrigues(w) @ R0` and the left Jacobian `J` of the exponential at `w`, with which
-    `d (rodrigues(w) @ R0 @ X) / d w_k = (J e_k) x (rodrigues(w) @ R0 @ X)`: both as 3 x 3
-    nested lists of scalars, entry by entry, so that XLA fuses them into the kernels over the
-    points. (As 3 x 3 products, and `jax.jacfwd(rodrigues)` for the derivative, each product
-    and stack was a kernel of its own under `vmap`: a refinement step of the refine benchmark
-    ran 123 kernels, 102 now, and 6-9 % faster.)
-
-    `J = I + b [w]x + c [w]x^2` and `rodrigues(w) = I + a [w]x + b [w]x^2` with
-    `a = sin(t) / t`, `b = (1 - cos t) / t^2 = (sin(t / 2) / (t / 2))^2 / 2` (no cancellation)
-    and `c = (t - sin t) / t^3`, its Taylor series below t = 0.01 (where the quotient would
-    lose up to 7e-12 of its value to cancellation)."""
-    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    safe2 = jnp.where(t2 < 1e-12, 1.0, t2)
-    t = jnp.sqrt(safe2)
-    sine_half = jnp.sin(0.5 * t) / (0.5 * t)
-    a = jnp.where(t2 < 1e-12, 1.0 - t2 / 6.0, sine_half * jnp.cos(0.5 * t))
-    b = jnp.where(t2 < 1e-12, 0.5 - t2 / 24.0, 0.5 * sine_half * sine_half)
-    c = jnp.where(t2 < 1e-4, 1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 / 5040.0), (1.0 - a) / safe2)
-    hat = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
-    hat2 = [[w[i] * w[j] - (t2 if i == j else 0.0) for j in range(3)] for i in range(3)]
-    eye = [[1.0 if i == j else 0.0 for j in range(3)] for i in range(3)]
-    E = [[eye[i][j] + a * hat[i][j] + b * hat2[i][j] for j in range(3)] for i in range(3)]
-    R = [[sum(E[i][k] * R0[k, j] for k in range(3)) for j in range(3)] for i in range(3)]
-    J = [[eye[i][j] + b * hat[i][j] + c * hat2[i][j] for j in range(3)] for i in range(3)]
-    return R, J
 
 
 @jax.custom_jvp
@@ -460,7 +433,7 @@ def _pixel_columns(p, R0, world):
     `Camera.project`, entry by entry."""
     au, av, s = p[0], p[1], p[4]
     k1, k2, p1, p2, k3 = (p[i] for i in range(11, 16))
-    R, J = _rotation(p[5:8], R0)
+    R, J = exp_and_left_jacobian(p[5:8], R0)
     X = [world[:, i] for i in range(3)]
     m = [R[i][0] * X[0] + R[i][1] * X[1] + R[i][2] * X[2] for i in range(3)]  # R X
     xc = [m[i] + p[8 + i] for i in range(3)]
@@ -485,10 +458,9 @@ def _pixel_columns(p, R0, world):
     dyd = [y * r2, y * r4, r2 + 2.0 * y * y, 2.0 * x * y, y * r4 * r2]
     columns = [(xd, zero), (zero, yd), (one, zero), (zero, one), (yd, zero)]
     # rotation increments: d(u, v) / d w_k = g . ((J e_k) x m) = (J e_k) . (m x g), g a row of
-    # duv_dc
-    q = [[m[(i + 1) % 3] * g[(i + 2) % 3] - m[(i + 2) % 3] * g[(i + 1) % 3] for i in range(3)]
-         for g in duv_dc]  # fmt: skip
-    columns += [tuple(sum(J[i][k] * qr[i] for i in range(3)) for qr in q) for k in range(3)]
+    # duv_dc (XLA computes each m x g once)
+    J = [[row[k] for row in J] for k in range(3)]  # its columns
+    columns += [tuple(_small.triple(J[k], m, g) for g in duv_dc) for k in range(3)]
     columns += [(duv_dc[0][k], duv_dc[1][k]) for k in range(3)]  # translation
     columns += [(au * a + s * b, av * b) for a, b in zip(dxd, dyd)]  # distortion
     return columns
@@ -543,14 +515,21 @@ def _residual_jacobian_t(y, args, free):
     return jnp.concatenate([d.reshape(1, -1) for row in rows for d in row]).reshape(len(rows), -1)
 
 
-def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
-    dtype = world.dtype
-    # Hidden points: replaced before any arithmetic, so NaN there reaches neither result nor grad.
+def _arguments(cam, world, pixels, mask, loss):
+    """The `args` of `_residuals` and `_residual_jacobian_t` for one camera: the packed seed,
+    its rotation, the parameters' scales, the points and pixels, the mask and the loss. Hidden
+    points are replaced before any arithmetic, so that NaN there reaches neither result nor
+    gradient."""
     world = jnp.where(mask[:, None], world, 0.0)
     pixels = jnp.where(mask[:, None], pixels, 0.0)
     p0 = _pack(cam)
-    scale = _scales(p0)
-    args = (p0, cam.R, scale, world, pixels, mask, loss)
+    return p0, cam.R, _scales(p0), world, pixels, mask, loss
+
+
+def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
+    dtype = world.dtype
+    args = _arguments(cam, world, pixels, mask, loss)
+    p0, _, scale, world, pixels, _, _ = args
     residuals = functools.partial(_residuals, free=free)
     jacobian_t = functools.partial(_residual_jacobian_t, free=free)
     y0 = jnp.zeros(len(free), dtype)

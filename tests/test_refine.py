@@ -409,11 +409,11 @@ def test_written_out_jacobians_equal_autodiff_of_camera_project():
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 3e-3, 0.05, 0.9, 3.0])
 def test_rotation_increment_and_its_left_jacobian(angle):
-    """`_rotation(w, R0)` against `rodrigues(w) @ R0`, and `d(R X) / dw_k = (J e_k) x (R X)`
-    against the complex-step derivative of Rodrigues' formula in its half-angle form (exact to
-    rounding at every angle; `jax.jacfwd(rodrigues)` loses 4e-12 at 1e-5 rad to the cancellation
-    in 1 - cos), across the Taylor branches' boundaries."""
-    from mvcalib import _refine as R
+    """`exp_and_left_jacobian(w, R0)` against `rodrigues(w) @ R0`, and
+    `d(R X) / dw_k = (J e_k) x (R X)` against the complex-step derivative of Rodrigues' formula in
+    its half-angle form (exact to rounding at every angle; `jax.jacfwd(rodrigues)` loses 4e-12
+    at 1e-5 rad to the cancellation in 1 - cos), across the Taylor branches' boundaries."""
+    from mvcalib._rotation import exp_and_left_jacobian
 
     rng = np.random.default_rng(7)
     R0 = np.asarray(mc.rodrigues(jnp.asarray(rng.normal(size=3))))
@@ -427,7 +427,7 @@ def test_rotation_increment_and_its_left_jacobian(angle):
         sinc = np.sin(t / 2) / (t / 2) if t != 0 else 1.0
         return np.eye(3) + sinc * np.cos(t / 2) * K + 0.5 * sinc**2 * (K @ K)
 
-    rotation, J = jax.jit(R._rotation)(jnp.asarray(w), jnp.asarray(R0))
+    rotation, J = jax.jit(exp_and_left_jacobian)(jnp.asarray(w), jnp.asarray(R0))
     rotation, J = (np.array([[float(e) for e in row] for row in m]) for m in (rotation, J))
     np.testing.assert_allclose(rotation, np.asarray(mc.rodrigues(jnp.asarray(w))) @ R0, atol=3e-16)
     np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-15)
