@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _sharding, _small, _validate
+from . import _buckets, _sharding, _small, _validate
 from ._status import Status
 
 # The largest reprojection RMS of a camera, as a fraction of its pixels' spread, that is still
@@ -463,6 +463,24 @@ def _exact(S, v, where):
     return jnp.where(where, w, v)
 
 
+@jax.custom_jvp
+def _eigen_lapack(S):
+    """`_eigen` by LAPACK: the eigenvectors of each camera's 12 x 12 `G` (`jnp.linalg.eigh`), its
+    smallest and `s_11` exactly, for the compact form of small programs (`compact`), where
+    compiling the written-out iteration would take seconds and running it microseconds."""
+    per_camera = jnp.moveaxis(S, (0, 1), (-2, -1))
+    G = jnp.vectorize(_normal_matrix, signature="(4,10)->(12,12)")(per_camera)
+    values, vectors = jnp.linalg.eigh(G)
+    return jnp.moveaxis(vectors[..., 0], -1, 0), jnp.sqrt(jnp.maximum(values[..., 1], 0.0))
+
+
+def compact(n_cameras: int, n_points: int) -> bool:
+    """Whether a program of `n_cameras` of `n_points` takes the compact form: LAPACK's
+    eigenvectors (`_eigen_lapack`) and medians by sorting, a fraction of the written-out form's
+    compile time (`_buckets.COMPACT`); not where a batch of LAPACK calls can hang."""
+    return n_cameras * n_points <= _buckets.COMPACT and not _sharding.batched_lapack_may_hang()
+
+
 def _times(A, x):
     """`A x` for a 4 x 4 block `A (4, 4, *batch)` and `x (4, *batch)` or `x (4, m, *batch)`."""
     if x.ndim == A.ndim - 1:
@@ -484,11 +502,10 @@ _PLAIN_STEPS = 8  # nearly degenerate points: v alone, at most this many steps
 _START = (0.93, -0.27, 0.51, 0.12, -0.66, 0.38, 0.84, -0.45, 0.19, 0.71, -0.58, 0.33)
 
 
-@_eigen.defjvp
-def _eigen_jvp(primals, tangents):
+def _eigen_jvp(eigen, primals, tangents):
     # The singular value is a diagnostic and carries no derivative.
     (S,), (dS,) = primals, tangents
-    v, s = _eigen(S)
+    v, s = eigen(S)
 
     def tangent(S, dS, v):
         return _small.eigenvector_tangent(_normal_matrix(S), v, _normal_matrix(dS) @ v)
@@ -500,7 +517,11 @@ def _eigen_jvp(primals, tangents):
     return (v, s), (jnp.moveaxis(dv, -1, 0), jnp.zeros_like(s))
 
 
-def poor_fit(rms, pixels, visible, max_relative_rms):
+_eigen.defjvp(functools.partial(_eigen_jvp, _eigen))
+_eigen_lapack.defjvp(functools.partial(_eigen_jvp, _eigen_lapack))
+
+
+def poor_fit(rms, pixels, visible, max_relative_rms, sort=False):
     """True where a camera's reprojection RMS over its visible points exceeds `max_relative_rms`
     times the pixels' spread (the median distance of the visible pixels from their median).
 
@@ -509,26 +530,28 @@ def poor_fit(rms, pixels, visible, max_relative_rms):
     keeps one wild pixel from inflating the spread that it is measured against.
     """
     rms, pixels = jax.lax.stop_gradient((rms, pixels))
+    median = functools.partial(_masked_median, sort=sort)
     u, v = pixels[..., 0], pixels[..., 1]
-    du = u - _masked_median(u, visible)[..., None]
-    dv = v - _masked_median(v, visible)[..., None]
-    spread = _masked_median(jnp.sqrt(du * du + dv * dv), visible)
+    du = u - median(u, visible)[..., None]
+    dv = v - median(v, visible)[..., None]
+    spread = median(jnp.sqrt(du * du + dv * dv), visible)
     return ~(rms <= max_relative_rms * spread)
 
 
-def _masked_median(x, mask):
+def _masked_median(x, mask, sort=False):
     """The median of `x (..., N)` over its entries where `mask` (NaN if none), as `np.median`.
 
-    Up to `_NETWORK_POINTS` points by a sorting network (Batcher's odd-even merge sort, cut down
-    to the comparators that the middle ranks depend on: 83 for 19 points), elementwise minima and
-    maxima over the batch; beyond, by sorting (`_ordered`). The hidden entries go below and above
+    Up to `_NETWORK_POINTS` points (unless `sort`: a small program, compiled quickly) by a sorting
+    network (Batcher's odd-even merge sort, cut down to the comparators that the middle ranks
+    depend on: 83 for 19 points), elementwise minima and maxima over the batch; beyond, by
+    sorting (`_ordered`). The hidden entries go below and above
     the visible ones, half each (-inf, then +inf), so that the visible median always sits at the
     same two ranks of all N. On CPU, 4096 cameras of 19 points, the three medians of `poor_fit`:
     0.09 against 0.25 µs per camera by counting (N^2 comparisons) and 0.5 by sorting.
     """
     n = x.shape[-1]
     count = jnp.sum(mask, axis=-1)
-    if n > _NETWORK_POINTS:
+    if sort or n > _NETWORK_POINTS:
         ordered = _ordered(jnp.where(mask, x, jnp.inf))  # hidden entries rank last
 
         def pick(k):
@@ -611,7 +634,9 @@ def _rms(P, world, pixels, visible, depth):
     return jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(visible), 1))
 
 
-def _camera(world, pixels, mask, visible, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms):
+def _camera(
+    world, pixels, mask, visible, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms, compact
+):
     """One camera from its eigenvector `v (12,)` and the points `_moments` used (`visible`): P
     (3, 4), status, condition number, mirrored."""
     # hidden points replaced by 0 before any arithmetic, so that neither their values nor NaN/inf
@@ -640,7 +665,9 @@ def _camera(world, pixels, mask, visible, v, s_11, norm, s3, c3, s2, c2, rcond, 
         n_visible < _validate.MIN_POINTS,
         ~(s_11 > rcond * norm),
         jnp.any(visible & (depth <= 0)),
-        poor_fit(_rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms),
+        poor_fit(
+            _rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms, compact
+        ),
     ]))  # fmt: skip
     status = jnp.select(
         list(checks),
@@ -683,8 +710,13 @@ def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_REL
     (chunks of 316: 9.4 µs). Each camera's answer does not depend on the others in its batch
     (`_eigen`), so chunks change it by rounding at most (~1e-15 of P).
     """
-    solve = functools.partial(_solve, rcond=rcond, max_relative_rms=max_relative_rms)
     batch = jnp.broadcast_shapes(world.shape[:-2], pixels.shape[:-2], mask.shape[:-1])
+    solve = functools.partial(
+        _solve,
+        rcond=rcond,
+        max_relative_rms=max_relative_rms,
+        compact=compact(math.prod(batch), pixels.shape[-2]),
+    )
     # every batched input flattened to (cameras, ...), as `_refine._refine_batched` does
     flat = lambda x, tail: jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)  # noqa: E731
     n = pixels.shape[-2]
@@ -697,16 +729,18 @@ def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_REL
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), out)
 
 
-def _solve(world, pixels, mask, rcond, max_relative_rms):
+def _solve(world, pixels, mask, rcond, max_relative_rms, compact=False):
     """For `pixels (C, N, 2)`, `mask (C, N)` and `world (N, 3)` or `(C, N, 3)`: the moments of all
     cameras, their eigenvectors with the cameras as the last axis, then per camera the
-    de-normalised P and its checks."""
+    de-normalised P and its checks (in the `compact` form for a small program)."""
     # (the scopes name the stages in profiles: benchmarks/profile_dlt.py)
     with jax.named_scope("moments"):
         S, visible, *normalisation = _moments(world, pixels, mask)
     with jax.named_scope("eigen"):
-        v, s_11 = _eigen(S)
-    camera = functools.partial(_camera, rcond=rcond, max_relative_rms=max_relative_rms)
+        v, s_11 = (_eigen_lapack if compact else _eigen)(S)
+    camera = functools.partial(
+        _camera, rcond=rcond, max_relative_rms=max_relative_rms, compact=compact
+    )
     with jax.named_scope("cameras"):
         return jnp.vectorize(
             camera, signature="(n,3),(n,2),(n),(n),(12),(),(),(),(3),(),(2)->(3,4),(),(),()"

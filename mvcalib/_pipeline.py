@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import math
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -10,10 +12,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _dlt, _refine, _validate
+from . import _buckets, _dlt, _validate
 from ._camera import Camera
 from ._report import ReprojectionReport, compute_report, format_table, masked_rms
 from ._status import Status
+
+if TYPE_CHECKING:
+    from . import _refine
 
 
 class CalibrationError(ValueError):
@@ -28,8 +33,10 @@ class Calibration(eqx.Module):
     - `report`: Table I and RMS/max per camera, on the points used for calibration.
     - `status`: a `Status` code per camera (`int32`); `ok` is `status == Status.OK`.
     - `condition`: the DLT's condition number `||L||_F / s_11` after normalisation (Frobenius
-      norm over the second smallest singular value, estimated; large means nearly degenerate
-      geometry).
+      norm over the second smallest singular value; large means nearly degenerate geometry).
+      Exact for rigs of up to `_buckets.COMPACT` camera-points (LAPACK's eigenvalues); larger
+      rigs estimate `s_11` from above in their inverse iteration, which gives the condition
+      number from below, within ~15 %.
     - `mirrored`: True where the world frame is mirrored relative to the camera (det M < 0 with
       the points in front): left-handed world coordinates, as in the Oxford VGG data, or pixels
       with y pointing up. `P` is right either way; `cameras` then has a proper rotation and
@@ -123,57 +130,88 @@ def calibrate(
 
     ```
     """
-    world, pixels, mask = _validate.correspondences(world, pixels, mask)
+    # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`), so that
+    # rigs of other sizes reuse the compiled program; checked and padded in NumPy.
+    bucketed = _buckets.applies(world, pixels, mask)
+    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
     max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
-    result = _calibrate(
-        world,
-        pixels,
-        mask,
-        skew=skew,
-        rcond=rcond,
-        max_relative_rms=jnp.inf if refine is not False else max_relative_rms,
-    )
+    options = None if refine is False else ({} if refine is True else dict(refine))
+    settings = dict(skew=skew, rcond=rcond, max_relative_rms=max_relative_rms)
+    if bucketed:
+        n_points = pixels.shape[-2]
+        (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
+        n_cameras = np.asarray(math.prod(batch), np.int32)  # an argument: it compiles once
+        result = _calibrate_any(world, pixels, mask, n_cameras, options, **settings)
+        result = _buckets.cut(result, batch)
+        if options is not None:
+            inliers = _buckets.first(result.refinement.inliers, n_points)
+            result = eqx.tree_at(lambda r: r.refinement.inliers, result, inliers)
+    else:
+        result = _calibrate_any(world, pixels, mask, None, options, **settings)
     if strict and _validate.is_concrete(result.status):
         result.raise_if_failed()
-    if refine is not False:
-        options = {} if refine is True else dict(refine)
-        seed = result.cameras
-        if not options.get("skew", False):
-            seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros_like(seed.skew))
-        # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
-        # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
-        ok = result.ok
-        if seed.batch_shape:
-            refined = _refine.refine(seed, world, pixels, mask, **options)
-        else:
-            one = lambda x: x[None]  # noqa: E731
-            refined = _refine.refine(
-                jax.tree_util.tree_map(one, seed), world, one(pixels), one(mask), **options
-            )
-            refined = jax.tree_util.tree_map(lambda x: x[0], refined)
-        # The check of the refined camera counts the points the fit kept (a robust loss's
-        # inliers; all visible points for least squares).
-        rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)
-        poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms)
-        status = jnp.where(ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
-        ok = status == Status.OK
-        cameras = jax.tree_util.tree_map(
-            lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, jnp.nan),
-            refined.cameras,
-        )
-        result = eqx.tree_at(
-            lambda r: (r.cameras, r.report, r.refinement, r.status),
-            result,
-            (cameras, refined.report, refined, status),
-            is_leaf=lambda x: x is None,
-        )
-        if strict and _validate.is_concrete(status):
-            result.raise_if_failed()
     return result
 
 
-@functools.partial(jax.jit, static_argnames=("skew", "rcond", "max_relative_rms"))
+def _calibrate_any(world, pixels, mask, n_cameras, options, **settings) -> Calibration:
+    """`_calibrate`, or with refinement options `_calibrate_refined`, with `n_cameras` the rig's
+    real cameras before padding (or None); small programs compiled quickly (`_buckets.jit`)."""
+    quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
+    if options is None:
+        return _calibrate(world, pixels, mask, quick=quick, **settings)
+    return _calibrate_refined(world, pixels, mask, n_cameras, options, quick=quick, **settings)
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _calibrate_refined(
+    world, pixels, mask, n_cameras, options, *, skew, rcond, max_relative_rms
+) -> Calibration:
+    """The closed form (`_calibrate`, every check but the fit's) seeding `refine` with `options`,
+    then the fit's check on the refined cameras; one compiled program. Cameras from the
+    `n_cameras`-th on (a bucket's padding) are left out of the refinement."""
+    from . import _refine  # Optimistix and Lineax are imported only when refining
+
+    result = _calibrate(world, pixels, mask, skew=skew, rcond=rcond, max_relative_rms=jnp.inf)
+    seed = result.cameras
+    if not options.get("skew", False):
+        seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros_like(seed.skew))
+    if n_cameras is not None:  # padding gets a NaN seed, which `refine` leaves out at once
+        real = jnp.arange(seed.batch_shape[0]) < n_cameras
+        seed = jax.tree_util.tree_map(
+            lambda x: jnp.where(real.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan), seed
+        )
+    # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
+    # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
+    ok = result.ok
+    if seed.batch_shape:
+        refined = _refine.refine(seed, world, pixels, mask, **options)
+    else:
+        one = lambda x: x[None]  # noqa: E731
+        refined = _refine.refine(
+            jax.tree_util.tree_map(one, seed), world, one(pixels), one(mask), **options
+        )
+        refined = jax.tree_util.tree_map(lambda x: x[0], refined)
+    # The check of the refined camera counts the points the fit kept (a robust loss's
+    # inliers; all visible points for least squares).
+    rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)
+    sort = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
+    poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms, sort)
+    status = jnp.where(ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
+    ok = status == Status.OK
+    cameras = jax.tree_util.tree_map(
+        lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, jnp.nan),
+        refined.cameras,
+    )
+    return eqx.tree_at(
+        lambda r: (r.cameras, r.report, r.refinement, r.status),
+        result,
+        (cameras, refined.report, refined, status),
+        is_leaf=lambda x: x is None,
+    )
+
+
+@functools.partial(_buckets.jit, static_argnames=("skew", "rcond", "max_relative_rms"))
 def _calibrate(
     world, pixels, mask, skew: bool, rcond: float, max_relative_rms: float
 ) -> Calibration:

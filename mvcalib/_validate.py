@@ -18,8 +18,9 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
-def floating(name: str, x, last_dims: tuple[int, ...] | None = None):
-    """`x` as a floating JAX array; integers are promoted, everything else is refused."""
+def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
+    """`x` as a floating JAX array (a NumPy array with `xp=np`); integers are promoted, everything
+    else is refused."""
     if isinstance(x, (list, tuple)):
         try:
             x = np.asarray(x)
@@ -29,7 +30,7 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None):
         x = np.asarray(x)
     dtype = np.dtype(x.dtype)
     if dtype.kind in "iu":
-        x = jnp.asarray(x, dtype=jnp.result_type(float))
+        x = xp.asarray(x, dtype=jnp.result_type(float))
     elif dtype.kind != "f":
         raise ValueError(
             f"`{name}` must hold real floating-point numbers; got dtype {dtype}. "
@@ -41,7 +42,7 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None):
             "(pixel coordinates above 2048 cannot even be represented exactly); "
             "use float32 or float64."
         )
-    x = jnp.asarray(x)
+    x = xp.asarray(x)
     if last_dims is not None:
         k = len(last_dims)
         if x.ndim < k or tuple(x.shape[x.ndim - k :]) != tuple(
@@ -52,10 +53,10 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None):
     return x
 
 
-def boolean_mask(name: str, mask, shape: tuple[int, ...]):
-    """A boolean visibility mask that broadcasts to `shape`."""
+def boolean_mask(name: str, mask, shape: tuple[int, ...], *, xp=jnp):
+    """A boolean visibility mask that broadcasts to `shape` (a NumPy array with `xp=np`)."""
     if mask is None:
-        return jnp.ones(shape, dtype=bool)
+        return xp.ones(shape, dtype=bool)
     if not hasattr(mask, "dtype"):  # lists, tuples, Python bools
         mask = np.asarray(mask)
     dtype = np.dtype(mask.dtype)
@@ -64,7 +65,7 @@ def boolean_mask(name: str, mask, shape: tuple[int, ...]):
             f"`{name}` must be a boolean array (True = visible); got dtype {dtype}. "
             "Use `mask.astype(bool)` if it holds 0/1."
         )
-    mask = jnp.asarray(mask)
+    mask = xp.asarray(mask)
     try:
         np.broadcast_shapes(tuple(mask.shape), shape)
     except ValueError:
@@ -72,17 +73,18 @@ def boolean_mask(name: str, mask, shape: tuple[int, ...]):
             f"`{name}` of shape {tuple(mask.shape)} does not broadcast to the points' "
             f"shape {shape}."
         ) from None
-    return jnp.broadcast_to(mask, np.broadcast_shapes(tuple(mask.shape), shape))
+    return xp.broadcast_to(mask, np.broadcast_shapes(tuple(mask.shape), shape))
 
 
-def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS):
+def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS, xp=jnp):
     """Check a (world, pixels, mask) triple; return them as arrays of one floating dtype.
 
     `world` is `(..., N, 3)` and `pixels` `(..., N, 2)`; their leading axes broadcast (one target
-    seen by a whole rig is `world` of shape `(N, 3)` with `pixels` of shape `(C, N, 2)`).
+    seen by a whole rig is `world` of shape `(N, 3)` with `pixels` of shape `(C, N, 2)`). With
+    `xp=np`, concrete arrays are checked and returned as NumPy arrays, compiling nothing.
     """
-    world = floating("world", world, (None, 3))
-    pixels = floating("pixels", pixels, (None, 2))
+    world = floating("world", world, (None, 3), xp=xp)
+    pixels = floating("pixels", pixels, (None, 2), xp=xp)
     if world.shape[-2] != pixels.shape[-2]:
         raise ValueError(
             f"`world` has {world.shape[-2]} points but `pixels` has {pixels.shape[-2]} "
@@ -106,23 +108,29 @@ def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS):
         raise ValueError(f"the camera axes are empty (batch shape {batch}).")
     dtype = jnp.result_type(world.dtype, pixels.dtype)
     world, pixels = world.astype(dtype), pixels.astype(dtype)
-    mask = boolean_mask("mask", mask, (*batch, n))
+    mask = boolean_mask("mask", mask, (*batch, n), xp=xp)
     if is_concrete(world, pixels, mask):
         _check_finite(world, pixels, mask)
     return world, pixels, mask
 
 
-@jax.jit
-def _count_non_finite(world, pixels, mask):
+def _non_finite(world, pixels, mask, xp=jnp):
     """How many visible points have NaN/inf in `world` and in `pixels`: two integers."""
-    count = lambda x: jnp.sum(~jnp.all(jnp.isfinite(x), axis=-1) & mask)  # noqa: E731
+    count = lambda x: xp.sum(~xp.all(xp.isfinite(x), axis=-1) & mask)  # noqa: E731
     return count(world), count(pixels)
+
+
+_count_non_finite = jax.jit(_non_finite)
 
 
 def _check_finite(world, pixels, mask):
     # Counted where the data live (two integers come back to the host, not the arrays); the
     # arrays are copied to NumPy only to name the first bad entry in the error.
-    if not any(int(n) for n in _count_non_finite(world, pixels, mask)):
+    if isinstance(world, np.ndarray):
+        counts = _non_finite(world, pixels, mask, np)
+    else:
+        counts = _count_non_finite(world, pixels, mask)
+    if not any(int(n) for n in counts):
         return
     mask = np.asarray(mask)
     for name, x in (("world", world), ("pixels", pixels)):

@@ -1,0 +1,106 @@
+"""Shape buckets: rigs of other sizes reuse one compiled program, and padding changes nothing."""
+
+import functools
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mvcalib as mc
+from mvcalib import _buckets, _dlt
+
+
+def test_bucket_sizes():
+    for n in range(1, 5000):
+        b = _buckets.size(n)
+        assert b >= n and _buckets.size(b) == b
+        assert b == n if n <= 16 else b <= 1.125 * n
+        assert _buckets.size(n + 1) >= b
+    assert _buckets.size(3, 64) == 64 and _buckets.size(100, 64) == 104
+    assert _buckets.cameras_and_points(3, 15) == (64, 64)
+    assert _buckets.cameras_and_points(33, 40) == (64, 64)
+    assert _buckets.cameras_and_points(4096, 19) == (4096, 20)
+
+
+def _rig(seed, n_cameras, n_points, noise=0.3, hidden=0.1):
+    """A rig of random cameras seeing `n_points` random points, some hidden."""
+    rng = np.random.default_rng(seed)
+    cameras = mc.synthetic.random_rig(jax.random.key(seed), n_cameras=n_cameras).cameras
+    world = rng.uniform(0.0, 160.0, (n_points, 3))
+    pixels = np.asarray(cameras.project(world)) + noise * rng.standard_normal(
+        (n_cameras, n_points, 2)
+    )
+    mask = rng.uniform(size=(n_cameras, n_points)) > hidden
+    return world, pixels, mask
+
+
+def _compiles(caplog, name):
+    return sum(f"Compiling jit({name})" in r.getMessage() for r in caplog.records)
+
+
+# The script of issue 39: rigs of 3 to 33 cameras, 15 to 40 points.
+RIGS = ((3, 15), (5, 22), (7, 40), (12, 19), (20, 31), (33, 27))
+
+
+def test_rigs_of_many_sizes_compile_calibrate_at_most_twice(caplog):
+    rigs = [_rig(i, c, n) for i, (c, n) in enumerate(RIGS)]
+    jax.clear_caches()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        results = [mc.calibrate(*rig) for rig in rigs]
+    assert _compiles(caplog, "_calibrate") <= 2
+    for (world, pixels, mask), result in zip(rigs, results):
+        assert result.P.shape == (len(pixels), 3, 4) and result.ok.all()
+        # the same as the rig's own shape, traced (no padding)
+        alone = jax.jit(mc.calibrate)(world, pixels, mask)
+        np.testing.assert_array_equal(result.status, alone.status)
+        scale = np.abs(np.asarray(alone.P)).max(axis=(-2, -1), keepdims=True)
+        assert np.max(np.abs(result.P - alone.P) / scale) < 1e-12
+
+
+def test_padding_keeps_batch_shapes_and_single_cameras():
+    world, pixels, mask = _rig(0, 6, 19)
+    grid = mc.calibrate(world, pixels.reshape(2, 3, 19, 2), mask.reshape(2, 3, 19))
+    assert grid.P.shape == (2, 3, 3, 4) and grid.report.rms.shape == (2, 3)
+    one = mc.calibrate(world, pixels[4], mask[4])
+    assert one.P.shape == (3, 4) and one.cameras.batch_shape == ()
+    np.testing.assert_allclose(one.P, grid.P[1, 1], rtol=0, atol=1e-12 * np.abs(one.P).max())
+    refined = mc.calibrate(world, pixels[:2], mask[:2], refine=True)
+    assert refined.refinement.inliers.shape == (2, 19)
+    np.testing.assert_array_equal(refined.refinement.inliers, mask[:2])
+
+
+def test_refined_calibration_is_the_same_padded_or_not():
+    world, pixels, mask = _rig(1, 5, 30)
+    padded = mc.calibrate(world, pixels, mask, refine=True)
+    alone = jax.jit(functools.partial(mc.calibrate, refine=True))(world, pixels, mask)
+    np.testing.assert_array_equal(padded.status, alone.status)
+    np.testing.assert_array_equal(padded.refinement.result, alone.refinement.result)
+    # the solver stops at steps of 1e-5 standard errors: its answer is that close, not closer
+    np.testing.assert_allclose(padded.report.rms, alone.report.rms, rtol=1e-9)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.5, 5.0])
+def test_compact_dlt_equals_the_written_out_one(noise):
+    """Small programs take LAPACK's eigenvectors and sorted medians (`_dlt.compact`); they give
+    the written-out inverse iteration's cameras and statuses."""
+    world, pixels, mask = _rig(2, 40, 24, noise=noise)
+    mask[3, 6:] = False  # six points: the least there is
+    mask[4, 5:] = False  # too few
+    world_far = world + 1e4  # the target far from the world's origin (each camera's own moments)
+    for w in (world, world_far):
+        args = (jnp.asarray(w), jnp.asarray(pixels), jnp.asarray(mask), 1.5e-8, 0.05)
+        P, status, condition, mirrored = jax.jit(functools.partial(_dlt._solve, compact=True))(
+            *args
+        )
+        P0, status0, condition0, mirrored0 = jax.jit(_dlt._solve)(*args)
+        np.testing.assert_array_equal(status, status0)
+        np.testing.assert_array_equal(mirrored, mirrored0)
+        ok = np.asarray(status0) == 0
+        scale = np.abs(np.asarray(P0)[ok]).max(axis=(-2, -1), keepdims=True)
+        assert np.max(np.abs(np.asarray(P)[ok] - np.asarray(P0)[ok]) / scale) < 1e-12
+        # the written-out form estimates s_11 from above, LAPACK's is exact: the condition
+        # number from below (here within 11 %), exact
+        assert np.all(np.asarray(condition)[ok] >= np.asarray(condition0)[ok] * (1 - 1e-9))
+        assert np.all(np.asarray(condition)[ok] <= np.asarray(condition0)[ok] * 1.15)
