@@ -3,9 +3,10 @@
 Runs, each with its own `--quick` (or `--smoke`) and in this order: `bound.py` (this machine's
 FLOP/s and bandwidth), `dlt.py` (DLT + decomposition against NumPy and OpenCV), `refine.py`
 (against SciPy least_squares), `triangulate.py` (against NumPy and OpenCV), `detect.py`
-(against OpenCV's blob detector) and `startup.py` (compile times, the demo's cold start), then
-prints one table of every path of the headline settings: time per camera / point / image, the
-peers' time over mvcalib's, accuracy at the same settings, compile time, peak memory and the
+(against OpenCV's blob detector), `startup.py` (compile times, the demo's cold start) and
+`first_call.py` (fresh processes to the first answer against OpenCV's loop, the break-even),
+then prints one table of every path of the headline settings: time per camera / point / image,
+the peers' time over mvcalib's, accuracy at the same settings, compile time, peak memory and the
 distance from the physical bound. Every number comes from this run; each script also writes its
 own JSON to `benchmarks/results/`, the suite adds `summary.json` and `summary.png`.
 
@@ -32,7 +33,7 @@ import time
 import traceback
 from pathlib import Path
 
-PARTS = ("bound", "dlt", "refine", "triangulate", "detect", "startup")
+PARTS = ("bound", "dlt", "refine", "triangulate", "detect", "startup", "first_call")
 SMOKE_PARTS = ("bound", "dlt", "triangulate")
 
 
@@ -180,12 +181,37 @@ def print_summary(rows, payloads, wall, mode, parts):
                 f"cold start `python -m mvcalib demo`, cache {r['cache']}: {r['exit_s']:.1f} s "
                 f"to exit ({r['first_output_s']:.1f} s to first output)"
             )
+    if "first_call" in payloads:
+        print_first_call(payloads["first_call"])
     print(f"\nsuite wall time {wall:.1f} s ({mode}); per part, wall / CPU (user + sys, this")
     print("process and its children; CPU > wall: both cores; wall > CPU: waiting for a busy CPU):")
     print(
         "  "
         + ", ".join(f"{n} {t['wall_time_s']:.0f} / {t['cpu_s']:.0f} s" for n, t in parts.items())
     )
+
+
+def print_first_call(payload):
+    """first_call.py's rows at their largest C, and its break-even."""
+    rows = payload["results"]
+    largest = {r["task"]: r for r in sorted(rows, key=lambda r: r["n_cameras"])}
+    print("fresh process to first answer (import + compile + run, caches off):")
+    for task, r in largest.items():
+        timed = r.get("cameras_timed", r["n_cameras"])
+        print(
+            f"  {task:<12} C={r['n_cameras']:<5} {r['first_answer_s']:>6.1f} s "
+            f"(import {r['import_s']:.1f} s)"
+            + (f", {timed} cameras timed" if timed < r["n_cameras"] else "")
+        )
+    even = payload.get("break_even")
+    if even:
+        C0, C1 = even["opencv"]["through"]
+        star = lambda c: "none" if c is None else f"{c:.0f} cameras"  # noqa: E731
+        print(
+            f"  break-even of refine=True against the OpenCV loop: C* = {star(even['C_star'])} "
+            f"(lines through C = {C0}, {C1}); {star(even['C_star_warm_slope'])} with mvcalib's "
+            "warm slope"
+        )
 
 
 def plot(payloads, path):
@@ -355,6 +381,7 @@ def main(argv=None) -> int:
         "dlt_grid": payloads.get("dlt", {}).get("results"),
         "compile": compile_rows(payloads),
         "cold_start": payloads.get("startup", {}).get("cold_start"),
+        "first_call": payloads.get("first_call", {}).get("break_even"),
         "plot": plot_path.name,
         "wall_time_s": wall,
     }

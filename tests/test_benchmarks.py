@@ -108,3 +108,32 @@ def test_suite_smoke_run_writes_its_results_where_asked(tmp_path):
     assert any(r["path"] == "mvcalib" and r["peer_over_mvcalib"] == 1.0 for r in rows)
     assert (tmp_path / "summary.png").stat().st_size > 0
     assert digest() == before
+
+
+def test_first_call_times_fresh_processes_against_opencv(tmp_path, monkeypatch, capsys):
+    # two tiny rigs of refine=True, each in its own fresh process with the persistent caches
+    # off, against OpenCV's loop timed on 4 cameras (and scaled to 8); the break-even from them
+    first_call = benchmark_module("first_call")
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path)
+    payload = first_call.main(["--only", "refine", "--cameras", "4,8", "--opencv-cameras", "4"])
+    assert json.loads((tmp_path / "first_call.json").read_text()) == json.loads(json.dumps(payload))
+    rows = payload["results"]
+    assert [(r["task"], r["n_cameras"]) for r in rows] == [
+        ("refine", 4), ("refine", 8), ("opencv", 4), ("opencv", 8),
+    ]  # fmt: skip
+    for r in rows:
+        assert r["ok"] == r.get("cameras_timed", r["n_cameras"]), r
+        assert 0 < r["startup_s"] < r["import_s"] < r["first_answer_s"] < r["exit_s"], r
+        assert r["first_answer_s"] == pytest.approx(r["import_s"] + r["call_s"])
+        if r["task"] == "refine":  # this checkout's mvcalib, its caches off
+            assert r["mvcalib"].startswith(str(ROOT)) and not r["cache_enabled"]
+    opencv = {r["n_cameras"]: r for r in rows if r["task"] == "opencv"}
+    assert opencv[8]["cameras_timed"] == 4
+    assert opencv[8]["call_s"] == pytest.approx(2 * opencv[8]["call_timed_s"])
+    # both fit the same model to the same points: the same minimum, up to float32 rounding
+    refine = {r["n_cameras"]: r for r in rows if r["task"] == "refine"}
+    assert refine[4]["median_rms_px"] == pytest.approx(opencv[4]["median_rms_px"], rel=1e-3)
+    even = payload["break_even"]
+    assert even["mvcalib_refine"]["through"] == even["opencv"]["through"] == [4, 8]
+    out = capsys.readouterr().out
+    assert "break-even" in out and "cv2.calibrateCamera loop" in out
