@@ -10,7 +10,6 @@ and sensor noise. NumPy throughout: it is a test fixture, not a differentiable k
 from __future__ import annotations
 
 import numpy as np
-from skimage.filters import gaussian
 
 from ._camera import Camera
 from .targets import Target
@@ -484,6 +483,8 @@ def render(
 
     reflectance = background - (background - dot) * cover
     if blur_sigma > 0:
+        from skimage.filters import gaussian  # SciPy and scikit-image only for rendering
+
         reflectance = gaussian(reflectance, sigma=blur_sigma, mode="nearest", preserve_range=True)
     # Illumination: a linear ramp of relative amplitude `gradient` in a random direction.
     theta = rng.uniform(0, 2 * np.pi)

@@ -1,0 +1,77 @@
+"""`import mvcalib` is cheap: public names are imported on first use (PEP 562).
+
+No timings here (the machines are noisy); the heavy dependencies staying out of `sys.modules`
+is what keeps the import cheap.
+"""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import mvcalib as mc
+
+HEAVY = ("skimage", "scipy", "matplotlib", "optimistix", "lineax")
+
+
+def test_import_leaves_heavy_dependencies_out():
+    code = (
+        "import sys, mvcalib\n"
+        f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))\n"
+        "print(sorted(m for m in sys.modules if m.startswith('mvcalib.')))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert out == ["[]", "[]"]
+
+
+def test_every_public_name_resolves():
+    assert len(mc.__all__) == len(set(mc.__all__))
+    for name in mc.__all__:
+        value = getattr(mc, name)
+        assert value is not None
+        assert vars(mc)[name] is value  # cached after the first use
+    assert mc.io.load_json and mc.synthetic.random_rig and mc.targets.box_corner
+    assert mc.Target is mc.targets.Target
+    from mvcalib import Camera, SecantLM, calibrate
+
+    assert (Camera, SecantLM, calibrate) == (mc.Camera, mc.SecantLM, mc.calibrate)
+
+
+def test_dir_lists_public_names():
+    listed = dir(mc)
+    assert set(mc.__all__) <= set(listed)
+    assert listed == sorted(listed)
+
+
+def test_unknown_names_raise_attribute_error():
+    try:
+        mc.no_such_name  # noqa: B018
+    except AttributeError as error:
+        assert "no_such_name" in str(error)
+    else:
+        raise AssertionError("mvcalib.no_such_name resolved")
+    from mvcalib import cli  # a submodule outside `__all__` still imports as one
+
+    assert cli.main is mc.cli.main
+
+
+def test_type_checking_imports_match_the_lazy_table():
+    """The imports that type checkers see name the same modules as the runtime table."""
+    tree = ast.parse(pathlib.Path(mc.__file__).read_text())
+    (block,) = [
+        node
+        for node in tree.body
+        if isinstance(node, ast.If) and ast.unparse(node.test) == "typing.TYPE_CHECKING"
+    ]
+    seen = {}
+    for node in block.body:
+        assert isinstance(node, ast.ImportFrom) and node.level == 1
+        for alias in node.names:
+            assert alias.asname == alias.name  # `import x as x`: a re-export
+            seen[alias.name] = node.module or alias.name
+    table = {name: name for name in mc._SUBMODULES}
+    table.update(mc._ORIGIN)
+    assert seen == table
+    assert sorted(seen) == sorted(mc.__all__)
