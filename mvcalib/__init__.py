@@ -26,6 +26,7 @@ __version__ = "0.1.0"
 _SUBMODULES = ("io", "synthetic", "targets")
 _EXPORTS = {
     "_bundle": ("BundleAdjustment", "RigRefinement", "bundle_adjust", "refine_rig"),
+    "_cache": ("enable_compilation_cache",),
     "_camera": ("Camera", "distort", "image_to_pixel", "pixel_to_image", "undistort_points"),
     "_detect": ("Detection", "detect_dots"),
     "_dlt": ("dlt",),
@@ -71,6 +72,7 @@ if typing.TYPE_CHECKING:
     from ._bundle import RigRefinement as RigRefinement
     from ._bundle import bundle_adjust as bundle_adjust
     from ._bundle import refine_rig as refine_rig
+    from ._cache import enable_compilation_cache as enable_compilation_cache
     from ._camera import Camera as Camera
     from ._camera import distort as distort
     from ._camera import image_to_pixel as image_to_pixel

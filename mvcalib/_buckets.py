@@ -5,8 +5,8 @@ and micro- to milliseconds to run. A call from Python with concrete arrays (not 
 user's `jax.jit`, `vmap` or `grad`) therefore pads the camera and point axes up to a *bucket*
 before the compiled call and cuts the answer back afterwards:
 
-- a length `n` goes up to the next `k 2^e` with `8 <= k < 16`: at most 12.5 % more work, and
-  eight sizes per doubling (`size`);
+- a length `n` goes up to the next `k 2^e` with `16 <= k < 32`: at most 6.25 % more work, and
+  sixteen sizes per doubling (`size`);
 - a program covers at least `WORK` camera-points (64 cameras of 64 points), so every rig up to
   that size shares one program (`cameras_and_points`).
 
@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import math
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -35,10 +36,10 @@ MIN_CAMERAS = 64
 
 
 def size(n: int, minimum: int = 1) -> int:
-    """The bucket of a length: the least `k 2^e >= max(n, minimum)` with `8 <= k < 16` (lengths
-    up to 16 are their own bucket)."""
+    """The bucket of a length: the least `k 2^e >= max(n, minimum)` with `16 <= k < 32` (lengths
+    up to 32 are their own bucket)."""
     n = max(int(n), int(minimum), 1)
-    step = 1 << max((n - 1).bit_length() - 4, 0)
+    step = 1 << max((n - 1).bit_length() - 5, 0)
     return -(-n // step) * step
 
 
@@ -109,10 +110,21 @@ def cut(tree, batch: tuple[int, ...]):
     return jax.tree_util.tree_map(one, tree)
 
 
-def first(x, n: int, axis: int = -1):
-    """The first `n` entries of the array `x` along `axis`, as a JAX array (a padded point axis
-    cut back; in NumPy, as `cut`)."""
-    return jax.device_put(np.take(np.asarray(x), np.arange(n), axis=axis))
+def cut_points(tree, where, n: int, axis: int):
+    """`tree` with its arrays `where(tree)` (a tuple: those with a point axis) cut to the first
+    `n` points along `axis` (`first`)."""
+    return eqx.tree_at(where, tree, tuple(first(x, n, axis) for x in where(tree)))
+
+
+def first(tree, n: int, axis: int = -1):
+    """Every array of `tree` cut to its first `n` entries along `axis` (a padded point axis cut
+    back), as a JAX array (in NumPy, as `cut`)."""
+
+    def one(x):
+        x = np.asarray(x)
+        return jax.device_put(x[(slice(None),) * (axis % x.ndim) + (slice(0, n),)])
+
+    return jax.tree_util.tree_map(one, tree)
 
 
 # Camera-points up to which a program takes a compact form (`_dlt.compact`) and is compiled

@@ -137,53 +137,54 @@ def calibrate(
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
     max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
     options = None if refine is False else ({} if refine is True else dict(refine))
-    settings = dict(skew=skew, rcond=rcond, max_relative_rms=max_relative_rms)
-    if bucketed:
+    # (with refinement, the fit's check waits for the refined cameras)
+    settings = dict(
+        skew=skew, rcond=rcond, max_relative_rms=np.inf if options is not None else max_relative_rms
+    )
+    if not bucketed:
+        result = _calibrate(world, pixels, mask, **settings)
+        if options is not None:
+            result = _refined(result, world, pixels, mask, options, max_relative_rms)
+    else:
         n_points = pixels.shape[-2]
         (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
-        n_cameras = np.asarray(math.prod(batch), np.int32)  # an argument: it compiles once
-        result = _calibrate_any(world, pixels, mask, n_cameras, options, **settings)
-        result = _buckets.cut(result, batch)
+        quick = _dlt.compact(*mask.shape)
+        result = _calibrate(world, pixels, mask, quick=quick, **settings)
         if options is not None:
-            inliers = _buckets.first(result.refinement.inliers, n_points)
-            result = eqx.tree_at(lambda r: r.refinement.inliers, result, inliers)
-    else:
-        result = _calibrate_any(world, pixels, mask, None, options, **settings)
+            result = _refined_bucket(
+                result, world, pixels, mask, options, max_relative_rms, math.prod(batch), quick
+            )
+        result = _buckets.cut(result, batch)
+        result = _buckets.cut_points(result, _point_arrays, n_points, len(batch))
     if strict and _validate.is_concrete(result.status):
         result.raise_if_failed()
     return result
 
 
-def _calibrate_any(world, pixels, mask, n_cameras, options, **settings) -> Calibration:
-    """`_calibrate`, or with refinement options `_calibrate_refined`, with `n_cameras` the rig's
-    real cameras before padding (or None); small programs compiled quickly (`_buckets.jit`)."""
-    quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
-    if options is None:
-        return _calibrate(world, pixels, mask, quick=quick, **settings)
-    return _calibrate_refined(world, pixels, mask, n_cameras, options, quick=quick, **settings)
+def _point_arrays(result: Calibration) -> tuple:
+    """The arrays of a `Calibration` with a point axis (after the cameras')."""
+    report = (result.report.residuals, result.report.mask)
+    if result.refinement is None:
+        return report
+    refinement = result.refinement
+    return report + (refinement.inliers, refinement.report.residuals, refinement.report.mask)
 
 
-@functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _calibrate_refined(
-    world, pixels, mask, n_cameras, options, *, skew, rcond, max_relative_rms
-) -> Calibration:
-    """The closed form (`_calibrate`, every check but the fit's) seeding `refine` with `options`,
-    then the fit's check on the refined cameras; one compiled program. Cameras from the
-    `n_cameras`-th on (a bucket's padding) are left out of the refinement."""
+def _seed(result: Calibration, options: dict, xp=jnp) -> Camera:
+    """The closed-form cameras as `refine`'s seed: the skew zeroed unless it is refined."""
+    if options.get("skew", False):
+        return result.cameras
+    return eqx.tree_at(lambda c: c.skew, result.cameras, xp.zeros_like(result.cameras.skew))
+
+
+def _refined(result, world, pixels, mask, options, max_relative_rms) -> Calibration:
+    """`result` refined (inside the caller's trace): the closed form seeds `refine`, and the
+    fit's check is made on the refined cameras."""
     from . import _refine  # Optimistix and Lineax are imported only when refining
 
-    result = _calibrate(world, pixels, mask, skew=skew, rcond=rcond, max_relative_rms=jnp.inf)
-    seed = result.cameras
-    if not options.get("skew", False):
-        seed = eqx.tree_at(lambda c: c.skew, seed, jnp.zeros_like(seed.skew))
-    if n_cameras is not None:  # padding gets a NaN seed, which `refine` leaves out at once
-        real = jnp.arange(seed.batch_shape[0]) < n_cameras
-        seed = jax.tree_util.tree_map(
-            lambda x: jnp.where(real.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan), seed
-        )
     # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
     # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
-    ok = result.ok
+    seed = _seed(result, options)
     if seed.batch_shape:
         refined = _refine.refine(seed, world, pixels, mask, **options)
     else:
@@ -192,12 +193,35 @@ def _calibrate_refined(
             jax.tree_util.tree_map(one, seed), world, one(pixels), one(mask), **options
         )
         refined = jax.tree_util.tree_map(lambda x: x[0], refined)
-    # The check of the refined camera counts the points the fit kept (a robust loss's
-    # inliers; all visible points for least squares).
+    return _checked(result, refined, world, pixels, mask, max_relative_rms)
+
+
+def _refined_bucket(
+    result, world, pixels, mask, options, max_relative_rms, n_cameras, quick
+) -> Calibration:
+    """`_refined` of a rig padded to its bucket, as the same compiled programs that `calibrate`
+    and `refine` called one after the other run: the same cameras to the last bit. The seed is
+    made in NumPy, the padding's cameras NaN (their problems end at once)."""
+    from . import _refine  # Optimistix and Lineax are imported only when refining
+
+    def padding_nan(x):
+        x = np.array(x)
+        x[n_cameras:] = np.nan
+        return x
+
+    seed = jax.tree_util.tree_map(padding_nan, _seed(result, options, np))
+    refined = _refine.refine(seed, world, pixels, mask, **options)  # (already a bucket)
+    return _checked(result, refined, world, pixels, mask, max_relative_rms, quick=quick)
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _checked(result, refined, world, pixels, mask, max_relative_rms) -> Calibration:
+    """`result` with the refined cameras and report, each camera checked (`_dlt.poor_fit`) over
+    the points the fit kept (a robust loss's inliers; all visible points for least squares)."""
     rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)
     sort = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
     poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms, sort)
-    status = jnp.where(ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
+    status = jnp.where(result.ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
     ok = status == Status.OK
     cameras = jax.tree_util.tree_map(
         lambda x: jnp.where(ok.reshape(ok.shape + (1,) * (x.ndim - ok.ndim)), x, jnp.nan),
@@ -211,7 +235,7 @@ def _calibrate_refined(
     )
 
 
-@functools.partial(_buckets.jit, static_argnames=("skew", "rcond", "max_relative_rms"))
+@functools.partial(_buckets.jit, static_argnames="skew")
 def _calibrate(
     world, pixels, mask, skew: bool, rcond: float, max_relative_rms: float
 ) -> Calibration:

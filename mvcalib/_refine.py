@@ -17,8 +17,8 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from . import _sharding, _small, _validate
-from ._camera import Camera, finite_cameras, unit_camera, usable_rig
+from . import _buckets, _sharding, _small, _validate
+from ._camera import Camera, unit_camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import exp_and_left_jacobian
 
@@ -482,6 +482,9 @@ def _parameters(y, p0, scale, free):
     return p0 + (y @ one_hot) * scale
 
 
+# (Both are traced once and called where needed: the solver evaluates them in its first step,
+# in its loop and for the covariance, and under `vmap` the loop's body is batched more than once.)
+@functools.partial(jax.jit, static_argnames="free")
 def _residuals(y, args, free):
     """The (robustly weighted) residuals `(2, N)`: all u, then all v (one array per coordinate,
     as the Jacobian's columns are built)."""
@@ -493,6 +496,7 @@ def _residuals(y, args, free):
     return r * _robust_weights(loss, r[0] * r[0] + r[1] * r[1])
 
 
+@functools.partial(jax.jit, static_argnames="free")
 def _residual_jacobian_t(y, args, free):
     """`d _residuals / d y` transposed, `(P, 2 N)`, one row per free parameter, from the
     written-out `_pixel_columns` (under `jax.jacfwd` the custom JVP would also multiply by the
@@ -704,9 +708,12 @@ def refine(
 
     ```
     """
-    world, pixels, mask = _validate.correspondences(world, pixels, mask)
     if not isinstance(cameras, Camera):
         raise ValueError(f"`cameras` must be an mvcalib.Camera; got {type(cameras).__name__}.")
+    # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`): padded
+    # cameras have NaN seeds, which end at once, padded points are hidden.
+    bucketed = _buckets.applies(cameras, world, pixels, mask)
+    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
     free = _free_parameters(distortion, fix, skew)
     if _validate.is_concrete(mask) and not cameras.batch_shape:
         n_min = int(np.sum(np.asarray(mask)))
@@ -716,16 +723,40 @@ def refine(
                 "free parameters; fix some parameters or add points. (In a rig, such a camera "
                 "is flagged instead: `result == -1`.)"
             )
-    if not cameras.batch_shape and _validate.is_concrete(*jax.tree_util.tree_leaves(cameras)):
-        if not bool(finite_cameras(jax.tree_util.tree_map(lambda x: x[None], cameras))[0]):
+    leaves = jax.tree_util.tree_leaves(cameras)
+    if not cameras.batch_shape and _validate.is_concrete(*leaves):
+        if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves):
             raise ValueError(
                 "the seed camera has a non-finite parameter (a camera `calibrate` could not "
                 "solve is NaN; see its status). (In a rig, such a camera is flagged instead: "
                 "`result == -2`.)"
             )
     dtype = jnp.result_type(world.dtype, cameras.R.dtype)
-    cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     solver = default_solver(dtype) if solver is None else solver
+    options = dict(free=free, loss=loss, solver=solver, max_steps=max_steps)
+    if not bucketed:
+        return _refine_all(cameras, world, pixels, mask, **options)
+    n_points, rig_shape = pixels.shape[-2], cameras.batch_shape
+    (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
+    n_cameras = pixels.shape[0]
+
+    def flat(x):  # the seed cameras as the flat, padded camera axis
+        tail = np.shape(x)[len(rig_shape) :]
+        x = np.broadcast_to(np.asarray(x), batch + tail).reshape((-1,) + tail)
+        return _buckets.pad(x, 0, n_cameras, fill=np.nan)
+
+    cameras = jax.tree_util.tree_map(flat, cameras)
+    quick = n_cameras * pixels.shape[1] <= _buckets.COMPACT
+    out = _buckets.cut(_refine_all(cameras, world, pixels, mask, quick=quick, **options), batch)
+    point_arrays = lambda r: (r.inliers, r.report.residuals, r.report.mask)  # noqa: E731
+    return _buckets.cut_points(out, point_arrays, n_points, len(batch))
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) -> Refinement:
+    """`refine` of validated arrays, in one compiled program."""
+    dtype = jnp.result_type(world.dtype, cameras.R.dtype)
+    cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     out = _refine_batched(
         cameras, world.astype(dtype), pixels.astype(dtype), mask, free, loss, solver, max_steps
     )

@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _sharding, _small, _validate
+from . import _buckets, _sharding, _small, _validate
 from ._camera import Camera, undistort_points, unit_camera, usable_rig
-from ._refine import LevenbergMarquardt, _adjoint
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -126,6 +125,10 @@ def _null_vector_jvp(primals, tangents):
 
 
 def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
+    import optimistix as optx  # (Optimistix is imported only where points are refined)
+
+    from ._refine import LevenbergMarquardt, _adjoint
+
     def residuals(X, _):
         r = cameras.project(X[None])[:, 0] - pixels
         return jnp.where(m[:, None], r, 0.0)
@@ -194,8 +197,7 @@ def _chunk_size(n_cameras: int, n_points: int) -> int | None:
     return _sharding.cpu_chunk(n_points, max(CHUNK // n_cameras, 256))
 
 
-@functools.partial(jax.jit, static_argnames=("refine", "max_steps", "chunk"))
-def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
+def _triangulate_set(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
     run = functools.partial(
         _triangulate_points, cameras, min_angle=min_angle, refine=refine, max_steps=max_steps
     )
@@ -326,7 +328,11 @@ def triangulate(
     if not isinstance(cameras, Camera) or len(cameras.batch_shape) != 1:
         raise ValueError("`cameras` must be a rig: one `Camera` with a camera axis (C,).")
     C = cameras.batch_shape[0]
-    pixels = _validate.floating("pixels", pixels, (None, None, 2))
+    # Called with concrete arrays, the points are padded to a shape bucket (hidden), so that
+    # other numbers of points reuse the compiled program; checked and padded in NumPy.
+    bucketed = _buckets.applies(cameras, pixels, mask)
+    xp = np if bucketed else jnp
+    pixels = _validate.floating("pixels", pixels, (None, None, 2), xp=xp)
     if pixels.shape[-3] != C:
         raise ValueError(
             f"`pixels` must be (..., C, N, 2) with C = {C} cameras; got {tuple(pixels.shape)}."
@@ -334,26 +340,46 @@ def triangulate(
     if C < 2:
         raise ValueError("triangulation needs at least 2 cameras.")
     if mask is None:
-        mask = jnp.all(jnp.isfinite(pixels), -1)
-    mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1])
+        mask = xp.all(xp.isfinite(pixels), -1)
+    mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
+    batch, n = pixels.shape[:-3], pixels.shape[-2]
+    if bucketed:
+        n_points = _buckets.size(n, _buckets.WORK // C)
+        pixels = _buckets.pad(pixels, -2, n_points, fill=0)
+        mask = _buckets.pad(mask, -1, n_points, fill=False)
+    work = math.prod(pixels.shape[:-1])
+    out = _triangulate(
+        cameras,
+        pixels,
+        mask,
+        min_angle=np.asarray(min_angle, pixels.dtype),
+        refine=bool(refine),
+        max_steps=int(max_steps),
+        chunk=_chunk_size(C, pixels.shape[-2]),
+        quick=work <= _buckets.COMPACT,
+    )
+    return _buckets.first(out, n, axis=len(batch)) if bucketed else out
+
+
+@functools.partial(_buckets.jit, static_argnames=("refine", "max_steps", "chunk"))
+def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
+    """`triangulate` of validated `pixels (..., C, N, 2)` and `mask (..., C, N)`."""
     cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, pixels.dtype), cameras)
     # a NaN camera (not calibrated) sees nothing
     cameras, mask, _ = usable_rig(cameras, mask, unit_camera(pixels.dtype))
     run = functools.partial(
-        _triangulate,
+        _triangulate_set,
         cameras,
-        min_angle=jnp.asarray(min_angle, pixels.dtype),
-        refine=bool(refine),
-        max_steps=int(max_steps),
-        chunk=_chunk_size(C, pixels.shape[-2]),
+        min_angle=min_angle,
+        refine=refine,
+        max_steps=max_steps,
+        chunk=chunk,
     )
     batch = pixels.shape[:-3]
-    flat = run if not batch else jax.vmap(run)
-    out = flat(pixels.reshape(-1, *pixels.shape[-3:]) if batch else pixels,
-               mask.reshape(-1, *mask.shape[-2:]) if batch else mask)  # fmt: skip
-    if batch:
-        out = jax.tree_util.tree_map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
-    return out
+    if not batch:
+        return run(pixels, mask)
+    out = jax.vmap(run)(pixels.reshape(-1, *pixels.shape[-3:]), mask.reshape(-1, *mask.shape[-2:]))
+    return jax.tree_util.tree_map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
 
 
 def reproject(cameras: Camera, points) -> Float[Array, "C N 2"]:

@@ -249,21 +249,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _enable_compilation_cache(jax) -> None:
+def _enable_compilation_cache() -> None:
+    from ._cache import enable_compilation_cache
+
     setting = os.environ.get("MVCALIB_COMPILATION_CACHE", "")
-    if setting == "0":
-        return
-    if setting:
-        path = pathlib.Path(setting)
-    else:
-        cache = pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache"))
-        path = cache / "mvcalib" / "jax"
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError:  # a read-only home: run without the cache rather than fail
-        return
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    if setting != "0":
+        enable_compilation_cache(setting or None)
 
 
 def _check_usage(parser, args) -> None:
@@ -315,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-        _enable_compilation_cache(jax)
+        _enable_compilation_cache()
         return COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("mvcalib: interrupted", file=sys.stderr)

@@ -3,22 +3,27 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._detect import Detection, detect_dots
-from ._images import ImageCalibration, calibrate_images
-from ._label import Labels, label_dots
+from . import _buckets
 from ._pipeline import Calibration, calibrate
 from ._registration import RigidTransform, procrustes, procrustes_paper, to_global
 from ._render import render
 from .io import write_atomic
 from .synthetic import PaperScene, paper_scene
 from .targets import box_corner
+
+if TYPE_CHECKING:  # the photographs' demo imports scikit-image: only where it runs
+    from ._detect import Detection
+    from ._images import ImageCalibration
+    from ._label import Labels
 
 PIXEL_SIZE_MM = (0.0045, 0.0045)  # sensor element pitch for the image-plane coordinates
 
@@ -45,7 +50,7 @@ def _unified(scene: PaperScene, pixels, registration: RigidTransform):
     return cameras.project(scene.fixed_point[None])[:, 0], calibration
 
 
-@eqx.filter_jit
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _pipeline(scene: PaperScene, noise):
     # Step 5: each snapshot's local frame into the room frame, from the 18 dots measured in both.
     local = scene.world[np.asarray(scene.registration_ids)]
@@ -66,7 +71,8 @@ def run(
 ) -> DemoResult:
     """Run the paper's pipeline on `synthetic.paper_scene` and return every intermediate result."""
     scene = paper_scene(jax.random.key(seed), noise=noise, global_noise=global_noise, dtype=dtype)
-    calibration, reg, reg_paper, unified, unified_paper, sigma = _pipeline(scene, noise)
+    # four snapshots of 19 dots: a small program, compiled quickly (`_buckets.jit`)
+    calibration, reg, reg_paper, unified, unified_paper, sigma = _pipeline(scene, noise, quick=True)
     calibration.raise_if_failed()
     return DemoResult(
         scene,
@@ -261,6 +267,10 @@ def stages_figure(
 
 def run_images(*, seed: int = 2010, figure=None, clutter: int = 3) -> ImageDemoResult:
     """The paper's pipeline from rendered photographs of the four snapshots (see `run`)."""
+    from ._detect import detect_dots
+    from ._images import calibrate_images
+    from ._label import label_dots
+
     scene = paper_scene(jax.random.key(seed), noise=0.0)
     target = box_corner()
     images = [

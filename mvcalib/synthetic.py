@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from . import _buckets
 from ._camera import Camera
 from ._registration import RigidTransform
 from ._render import dot_normals as dot_normals
@@ -81,10 +84,11 @@ def random_cameras(
         focal=tuple(focal),
         max_angle=float(max_angle),
         fill=tuple(fill),
+        quick=n_cameras * len(target.points) <= _buckets.COMPACT,  # (`_buckets.jit`)
     )
 
 
-@eqx.filter_jit
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _random_cameras(key, pts, n_cameras, *, image_size, focal, max_angle, fill) -> Camera:
     dtype = pts.dtype
     width, height = image_size
@@ -157,10 +161,11 @@ def random_rig(
         k_cam, n_cameras, target, image_size=image_size, dtype=dtype, **camera_options
     )
     world = jnp.asarray(target.points, cameras.R.dtype)
-    return _observe_rig(k_noise, cameras, world, noise, tuple(image_size))
+    quick = n_cameras * len(world) <= _buckets.COMPACT  # (`_buckets.jit`)
+    return _observe_rig(k_noise, cameras, world, noise, tuple(image_size), quick=quick)
 
 
-@eqx.filter_jit
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _observe_rig(key, cameras, world, noise, image_size) -> SyntheticRig:
     true, noisy, mask = observe(key, cameras, world, noise, image_size)
     return SyntheticRig(cameras, world, true, noisy, mask, image_size)
@@ -223,10 +228,11 @@ def paper_scene(
     key = jax.random.key(2010) if key is None else key
     target = box_corner()
     world = jnp.asarray(target.points, _default_dtype(dtype))
-    return _paper_scene(key, world, tuple(int(i) for i in target.global_ids), noise, global_noise)
+    ids = tuple(int(i) for i in target.global_ids)
+    return _paper_scene(key, world, ids, noise, global_noise, quick=True)
 
 
-@eqx.filter_jit
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _paper_scene(key, world, registration_ids, noise, global_noise) -> PaperScene:
     dtype = world.dtype
     image_size = (1000, 1100)

@@ -16,12 +16,13 @@ def test_bucket_sizes():
     for n in range(1, 5000):
         b = _buckets.size(n)
         assert b >= n and _buckets.size(b) == b
-        assert b == n if n <= 16 else b <= 1.125 * n
+        assert b == n if n <= 32 else b <= 1.0625 * n
         assert _buckets.size(n + 1) >= b
-    assert _buckets.size(3, 64) == 64 and _buckets.size(100, 64) == 104
+    assert _buckets.size(3, 64) == 64 and _buckets.size(100, 64) == 100
+    assert _buckets.size(101) == 104 and _buckets.size(100_000) == 102_400
     assert _buckets.cameras_and_points(3, 15) == (64, 64)
     assert _buckets.cameras_and_points(33, 40) == (64, 64)
-    assert _buckets.cameras_and_points(4096, 19) == (4096, 20)
+    assert _buckets.cameras_and_points(4096, 19) == (4096, 19)
 
 
 def _rig(seed, n_cameras, n_points, noise=0.3, hidden=0.1):
@@ -63,12 +64,20 @@ def test_padding_keeps_batch_shapes_and_single_cameras():
     world, pixels, mask = _rig(0, 6, 19)
     grid = mc.calibrate(world, pixels.reshape(2, 3, 19, 2), mask.reshape(2, 3, 19))
     assert grid.P.shape == (2, 3, 3, 4) and grid.report.rms.shape == (2, 3)
+    assert grid.report.residuals.shape == (2, 3, 19, 2) and grid.report.mask.shape == (2, 3, 19)
     one = mc.calibrate(world, pixels[4], mask[4])
     assert one.P.shape == (3, 4) and one.cameras.batch_shape == ()
     np.testing.assert_allclose(one.P, grid.P[1, 1], rtol=0, atol=1e-12 * np.abs(one.P).max())
     refined = mc.calibrate(world, pixels[:2], mask[:2], refine=True)
     assert refined.refinement.inliers.shape == (2, 19)
+    assert refined.report.residuals.shape == refined.refinement.report.residuals.shape == (2, 19, 2)
     np.testing.assert_array_equal(refined.refinement.inliers, mask[:2])
+    np.testing.assert_array_equal(refined.report.mask, mask[:2])
+    by_hand = mc.refine(refined.cameras, world, pixels[:2], mask[:2])
+    assert by_hand.inliers.shape == by_hand.report.mask.shape == (2, 19)
+    assert by_hand.report.residuals.shape == (2, 19, 2) and by_hand.covariance.shape == (2, 14, 14)
+    points = mc.triangulate(refined.cameras, pixels[:2, :7], mask[:2, :7])
+    assert points.points.shape == (7, 3) and points.ok.shape == (7,)
 
 
 def test_refined_calibration_is_the_same_padded_or_not():
