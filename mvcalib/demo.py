@@ -56,11 +56,17 @@ def _pipeline(scene: PaperScene, noise):
     local = scene.world[np.asarray(scene.registration_ids)]
     registration = procrustes(local, scene.world_global)
     registration_paper = procrustes_paper(local, scene.world_global)
-    unified, calibration = _unified(scene, scene.pixels, registration)
-    unified_paper, _ = _unified(scene, scene.pixels, registration_paper)
+
     # How far the four answers may scatter: propagate the pixel noise to first order through the
-    # whole pipeline (DLT, decomposition, registration, projection) with its Jacobian.
-    J = jax.jacfwd(lambda px: _unified(scene, px, registration)[0])(scene.pixels)
+    # whole pipeline (DLT, decomposition, registration, projection) with its Jacobian. The
+    # answers themselves come with it (one trace of the pipeline, not three).
+    def fixed_pixel(pixels):
+        unified, calibration = _unified(scene, pixels, registration)
+        return unified, (unified, calibration)
+
+    J, (unified, calibration) = jax.jacfwd(fixed_pixel, has_aux=True)(scene.pixels)
+    paper = to_global(calibration.cameras, registration_paper)
+    unified_paper = paper.project(scene.fixed_point[None])[:, 0]
     J = jnp.stack([J[k, :, k].reshape(2, -1) for k in range(J.shape[0])])
     sigma = noise * jnp.sqrt(jnp.sum(J**2, axis=-1))
     return calibration, registration, registration_paper, unified, unified_paper, sigma
