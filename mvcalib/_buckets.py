@@ -50,7 +50,7 @@ def cameras_and_points(n_cameras: int, n_points: int) -> tuple[int, int]:
 
 
 def applies(*trees) -> bool:
-    """Whether a call with these arguments pads: every array concrete, and none split over
+    """Whether a call with these arguments may pad: every array concrete, and none split over
     several devices (whose layout the caller chose; `mvcalib.shard`)."""
     for x in jax.tree_util.tree_leaves(trees):
         if isinstance(x, jax.core.Tracer):
@@ -58,6 +58,22 @@ def applies(*trees) -> bool:
         if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
             return False
     return True
+
+
+def pads(world, pixels, mask) -> bool:
+    """Whether a call with these correspondences pads (`applies`), i.e. is not already of its
+    bucket's shape with one camera axis: a rig that is goes to the compiled program as it is,
+    without a copy through NumPy."""
+    if not applies(world, pixels, mask):
+        return False
+    try:
+        n = np.shape(pixels)[-2]
+        batch = np.broadcast_shapes(np.shape(world)[:-2], np.shape(pixels)[:-2])
+        if mask is not None:
+            batch = np.broadcast_shapes(batch, np.shape(mask)[:-1])
+    except (ValueError, IndexError):  # bad shapes: validation says what is wrong
+        return True
+    return len(batch) != 1 or cameras_and_points(batch[0], n) != (batch[0], n)
 
 
 def pad(x, axis: int, length: int, *, fill=None):

@@ -131,8 +131,9 @@ def calibrate(
     ```
     """
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`), so that
-    # rigs of other sizes reuse the compiled program; checked and padded in NumPy.
-    bucketed = _buckets.applies(world, pixels, mask)
+    # rigs of other sizes reuse the compiled program; checked and padded in NumPy. (A rig of a
+    # bucket's shape, or inside the caller's trace, goes as it is.)
+    bucketed = _buckets.pads(world, pixels, mask)
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
     max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
@@ -142,9 +143,10 @@ def calibrate(
         skew=skew, rcond=rcond, max_relative_rms=np.inf if options is not None else max_relative_rms
     )
     if not bucketed:
-        result = _calibrate(world, pixels, mask, **settings)
+        quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
+        result = _calibrate(world, pixels, mask, quick=quick, **settings)
         if options is not None:
-            result = _refined(result, world, pixels, mask, options, max_relative_rms)
+            result = _refined(result, world, pixels, mask, options, max_relative_rms, quick)
     else:
         n_points = pixels.shape[-2]
         (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
@@ -177,7 +179,7 @@ def _seed(result: Calibration, options: dict, xp=jnp) -> Camera:
     return eqx.tree_at(lambda c: c.skew, result.cameras, xp.zeros_like(result.cameras.skew))
 
 
-def _refined(result, world, pixels, mask, options, max_relative_rms) -> Calibration:
+def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> Calibration:
     """`result` refined (inside the caller's trace): the closed form seeds `refine`, and the
     fit's check is made on the refined cameras."""
     from . import _refine  # Optimistix and Lineax are imported only when refining
@@ -193,7 +195,7 @@ def _refined(result, world, pixels, mask, options, max_relative_rms) -> Calibrat
             jax.tree_util.tree_map(one, seed), world, one(pixels), one(mask), **options
         )
         refined = jax.tree_util.tree_map(lambda x: x[0], refined)
-    return _checked(result, refined, world, pixels, mask, max_relative_rms)
+    return _checked(result, refined, world, pixels, mask, max_relative_rms, quick=quick)
 
 
 def _refined_bucket(

@@ -712,7 +712,7 @@ def refine(
         raise ValueError(f"`cameras` must be an mvcalib.Camera; got {type(cameras).__name__}.")
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`): padded
     # cameras have NaN seeds, which end at once, padded points are hidden.
-    bucketed = _buckets.applies(cameras, world, pixels, mask)
+    bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
     free = _free_parameters(distortion, fix, skew)
     if _validate.is_concrete(mask) and not cameras.batch_shape:
@@ -735,7 +735,8 @@ def refine(
     solver = default_solver(dtype) if solver is None else solver
     options = dict(free=free, loss=loss, solver=solver, max_steps=max_steps)
     if not bucketed:
-        return _refine_all(cameras, world, pixels, mask, **options)
+        quick = math.prod(mask.shape) <= _buckets.COMPACT
+        return _refine_all(cameras, world, pixels, mask, quick=quick, **options)
     n_points, rig_shape = pixels.shape[-2], cameras.batch_shape
     (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
     n_cameras = pixels.shape[0]

@@ -330,7 +330,9 @@ def triangulate(
     C = cameras.batch_shape[0]
     # Called with concrete arrays, the points are padded to a shape bucket (hidden), so that
     # other numbers of points reuse the compiled program; checked and padded in NumPy.
-    bucketed = _buckets.applies(cameras, pixels, mask)
+    n = np.shape(pixels)[-2] if np.ndim(pixels) >= 3 else 0
+    least = _buckets.WORK // max(C, 1)
+    bucketed = _buckets.applies(cameras, pixels, mask) and _buckets.size(n, least) != n
     xp = np if bucketed else jnp
     pixels = _validate.floating("pixels", pixels, (None, None, 2), xp=xp)
     if pixels.shape[-3] != C:
@@ -342,9 +344,9 @@ def triangulate(
     if mask is None:
         mask = xp.all(xp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
-    batch, n = pixels.shape[:-3], pixels.shape[-2]
+    batch = pixels.shape[:-3]
     if bucketed:
-        n_points = _buckets.size(n, _buckets.WORK // C)
+        n_points = _buckets.size(n, least)
         pixels = _buckets.pad(pixels, -2, n_points, fill=0)
         mask = _buckets.pad(mask, -1, n_points, fill=False)
     work = math.prod(pixels.shape[:-1])
