@@ -1,3 +1,4 @@
+import os
 import pathlib
 import re
 import subprocess
@@ -20,3 +21,17 @@ def test_ci_runs_exactly_the_readme_test_command():
     command = re.search(r"# install and run the tests.*\n(.*)\n", text).group(1)
     ci = (README.parent / ".ci" / "run").read_text()
     assert command.strip() in ci
+
+
+def test_readme_compilation_cache_example_runs(tmp_path):
+    """The README's second Python block turns the cache on where it says."""
+    code = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)[1]
+    assert "enable_compilation_cache" in code
+    check = "\nimport jax\nprint(jax.config.jax_compilation_cache_dir)\n"
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", code + check], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == str(tmp_path / "mvcalib" / "jax")
+    assert (tmp_path / "mvcalib" / "jax").is_dir()
