@@ -347,6 +347,11 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
     fns = {"mvcalib": lambda: jax.block_until_ready(mvcalib_calibrate(jworld, jpixels, jmask))}
     if with_calibrate:
         fns["calibrate()"] = lambda: jax.block_until_ready(mc.calibrate(jworld, jpixels, jmask))
+        # the general case, world points given per camera (PIV plates, bundle data)
+        jworld_c = jax.numpy.asarray(np.broadcast_to(world, (C, N, 3)))
+        fns["mvcalib, world (C,N,3)"] = lambda: jax.block_until_ready(
+            mvcalib_calibrate(jworld_c, jpixels, jmask)
+        )
     fns["numpy batched"] = lambda: numpy_batched(world, pixels, mask)
     fns["numpy loop"] = lambda: numpy_loop(*sub)
     fns["cv2 decompose"] = lambda: cv2_decompose_loop(*sub)
@@ -370,6 +375,7 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
     krt["mvcalib"] = camera_krt(outputs["mvcalib"])
     if with_calibrate:
         krt["calibrate()"] = camera_krt(outputs["calibrate()"].cameras)
+        krt["mvcalib, world (C,N,3)"] = camera_krt(outputs["mvcalib, world (C,N,3)"])
     rms = {
         name: reprojection_rms(world, pixels[: len(v[0])], mask[: len(v[0])], *v)
         for name, v in krt.items()
