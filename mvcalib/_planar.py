@@ -4,6 +4,7 @@ homographies, the closed-form intrinsics, the poses, then a joint refinement wit
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -14,7 +15,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _validate
+from . import _buckets, _validate
 from ._camera import Camera
 from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
@@ -231,7 +232,7 @@ def _pose(K, H, plane, mask):
     return R, t
 
 
-@functools.partial(jax.jit, static_argnames="rcond")
+@functools.partial(_buckets.jit, static_argnames="rcond")
 def _closed_form(world, plane, pixels, mask, skew, rcond: float):
     """Homographies, intrinsics and poses for validated input, in one compiled call."""
     # Hidden points are replaced before any arithmetic, so their values (even NaN) never count.
@@ -278,7 +279,7 @@ def _planar_residuals(y, args):
     return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
 
 
-@eqx.filter_jit
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
     """Refine the closed-form rig. Views that failed (`~ok`) get a harmless seed and no points
     (`_finish` puts NaN in their place)."""
@@ -316,7 +317,7 @@ def _free_masks(distortion, fix, skew, dtype):
     return mask(SHARED), mask(POSE)
 
 
-@jax.jit
+@_buckets.jit
 def _finish(closed, camera, world, pixels, mask, ok):
     """NaN for the views that failed; the report per view and the pooled RMS of the others."""
     closed, camera = _nan_where(~ok, closed), _nan_where(~ok, camera)
@@ -477,16 +478,20 @@ def calibrate_planar(
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     free_shared, free_pose = _free_masks(distortion, fix, skew, dtype)  # checks the names
     skew = jnp.asarray(bool(skew))
-    H, seed, status, condition = _closed_form(world, plane, pixels, mask, skew, rcond)
+    quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
+    H, seed, status, condition = _closed_form(world, plane, pixels, mask, skew, rcond, quick=quick)
     ok = status == Status.OK
     if refine:
         solver = default_solver(dtype) if solver is None else solver
         camera, iterations, result = _refine_views(
-            seed, ok, world, pixels, mask, free_shared, free_pose, loss, solver, int(max_steps)
-        )
+            seed, ok, world, pixels, mask, free_shared, free_pose, loss, solver, int(max_steps),
+            quick=quick,
+        )  # fmt: skip
     else:
         iterations = result = jnp.zeros((), jnp.int32)
-    closed, camera, report, rms = _finish(seed, camera if refine else seed, world, pixels, mask, ok)
+    closed, camera, report, rms = _finish(
+        seed, camera if refine else seed, world, pixels, mask, ok, quick=quick
+    )
     return PlanarCalibration(
         camera=camera,
         closed_form=closed,
