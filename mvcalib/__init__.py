@@ -37,6 +37,7 @@ _EXPORTS = {
     "_refine": ("Cauchy", "Huber", "Refinement", "SecantLM", "refine"),
     "_registration": ("RigidTransform", "procrustes", "procrustes_paper", "to_global"),
     "_report": ("ReprojectionReport", "reprojection_report"),
+    "_rig": ("RigCalibration", "calibrate_rig"),
     "_rotation": ("nearest_rotation", "rodrigues"),
     "_sharding": ("shard",),
     "_status": ("Status",),
@@ -102,6 +103,8 @@ if typing.TYPE_CHECKING:
     from ._registration import to_global as to_global
     from ._report import ReprojectionReport as ReprojectionReport
     from ._report import reprojection_report as reprojection_report
+    from ._rig import RigCalibration as RigCalibration
+    from ._rig import calibrate_rig as calibrate_rig
     from ._rotation import nearest_rotation as nearest_rotation
     from ._rotation import rodrigues as rodrigues
     from ._sharding import shard as shard

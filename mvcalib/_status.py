@@ -18,6 +18,7 @@ class Status(enum.IntEnum):
     POINTS_BEHIND = 4
     NOT_LABELLED = 5
     POOR_FIT = 6
+    NOT_CONNECTED = 7
 
     @property
     def message(self) -> str:
@@ -39,6 +40,10 @@ _MESSAGES = {
         "the camera reprojects its own points with an RMS above `max_relative_rms` (default 5 %) "
         "of their spread: wrong correspondences (one wild pixel is enough), or noise or lens "
         "distortion too large for a pinhole camera at this image size"
+    ),
+    Status.NOT_CONNECTED: (
+        "shares no frame, directly or through other cameras, with the reference camera: its pose "
+        "in the rig is not determined (`calibrate_rig`)"
     ),
     Status.NOT_LABELLED: (
         "the image could not be read, or its dots could not be told apart with certainty "

@@ -1,4 +1,5 @@
-"""Saving and loading rigs (versioned JSON, OpenCV YAML, COLMAP) and correspondences (CSV, JSON).
+"""Saving and loading rigs (versioned JSON, OpenCV YAML, COLMAP, aniposelib and caliscope TOML),
+correspondences (CSV, JSON) and a rig's observations of a moving target (CSV, caliscope's xy.csv).
 
 A rig file holds one entry per camera (name, intrinsics, `R`, `t`, distortion in OpenCV's order,
 and optionally its calibration status and reprojection RMS). Cameras that failed have `null`
@@ -26,7 +27,8 @@ from ._camera import Camera
 __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
     "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
-    "load_correspondences",
+    "load_correspondences", "Observations", "save_observations", "load_observations",
+    "load_caliscope", "load_caliscope_cameras",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -790,3 +792,452 @@ def _from_json(text: str, path) -> Correspondences:
         return _checked(world, pixels, mask, cameras, points, unlabelled)
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: malformed correspondences ({error}).") from None
+
+
+# ---------------------------------------------------------------------------- observations
+_TARGET = ("target_x", "target_y", "target_z")
+_OBSERVATION_COLUMNS = ("camera", "frame", "point", *_TARGET, *_PIXEL)
+
+
+@dataclasses.dataclass(frozen=True)
+class Observations:
+    """A rig of cameras watching a target that moves over frames: what an observations file
+    (`save_observations`, `load_observations`) and caliscope's `xy.csv` (`load_caliscope`) hold.
+
+    **Fields:**
+
+    - `target`: `(N, 3)` the target's points in its own frame (a planar board has `z = 0`).
+    - `pixels`: `(C, F, N, 2)` where camera c saw point n in frame f, `(x = column, y = row)`
+      with the origin at the centre of the top-left pixel; NaN where unseen.
+    - `mask`: `(C, F, N)` bool: which camera saw which point in which frame.
+    - `cameras`: the C camera names; `frames`: `(F,)` int frame ids, ascending; `points`: `(N,)`
+      int ids of the target's points, ascending.
+
+    The target's pose in each frame is unknown, and not part of it. `target`, `pixels[c]`,
+    `mask[c]` are camera c's views of the target, what `mvcalib.calibrate_planar` takes.
+
+    **Example:**
+
+    ```python
+    >>> import numpy as np, mvcalib as mc
+    >>> board = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    >>> pixels = np.full((2, 1, 3, 2), np.nan)  # 2 cameras, 1 frame, 3 points
+    >>> pixels[0, 0] = [[10.0, 20.0], [30.0, 20.0], [10.0, 40.0]]
+    >>> pixels[1, 0, :2] = [[15.0, 25.0], [35.0, 25.0]]  # camera b missed point 2
+    >>> o = mc.io.Observations(board, pixels, np.isfinite(pixels[..., 0]), ["a", "b"],
+    ...                        frames=np.array([7]), points=np.array([0, 1, 2]))
+    >>> int(o.mask.sum()), o.pixels.shape
+    (5, (2, 1, 3, 2))
+
+    ```
+    """
+
+    target: np.ndarray
+    pixels: np.ndarray
+    mask: np.ndarray
+    cameras: list[str]
+    frames: np.ndarray
+    points: np.ndarray
+
+
+def _ids(what: str, ids) -> np.ndarray:
+    ids = np.asarray(ids)
+    if ids.ndim != 1 or (ids.size and not np.issubdtype(ids.dtype, np.integer)):
+        raise ValueError(
+            f"`{what}` must be a 1-D array of integer ids; got {ids.dtype} {ids.shape}."
+        )
+    ids = ids.astype(np.int64)
+    if np.any(np.diff(ids) <= 0):
+        raise ValueError(f"`{what}` must be strictly ascending (sorted, no repeats).")
+    return ids
+
+
+def _checked_observations(o: Observations) -> Observations:
+    frames, points = _ids("frames", o.frames), _ids("points", o.points)
+    F, N = len(frames), len(points)
+    target = np.array(o.target, dtype=float)
+    if target.shape != (N, 3) or not np.all(np.isfinite(target)):
+        raise ValueError(
+            f"`target` must be finite, of shape (N, 3) = ({N}, 3); got {target.shape}."
+        )
+    cameras = [str(s) for s in o.cameras]
+    C = len(cameras)
+    pixels = np.array(o.pixels, dtype=float)
+    if pixels.shape != (C, F, N, 2):
+        raise ValueError(f"`pixels` must be (C, F, N, 2) = ({C}, {F}, {N}, 2); got {pixels.shape}.")
+    mask = np.asarray(o.mask)
+    if mask.dtype != bool or mask.shape != (C, F, N):
+        raise ValueError(
+            f"`mask` must be bool of shape ({C}, {F}, {N}); got {mask.dtype} {mask.shape}."
+        )
+    if not np.all(np.isfinite(pixels[mask])):
+        raise ValueError("`pixels` has NaN or inf entries where `mask` is True.")
+    if not C or len(set(cameras)) != C or any(s != s.strip() or not s for s in cameras):
+        raise ValueError(f"need one or more different camera names, not blank and not starting "
+                         f"or ending with a space; got {cameras}.")  # fmt: skip
+    if any("\n" in s or "\r" in s or s.startswith("#") for s in cameras):
+        raise ValueError("camera names must not contain line breaks nor start with '#'.")
+    pixels = np.where(mask[..., None], pixels, np.nan)
+    return Observations(target, pixels, mask, cameras, frames, points)
+
+
+def save_observations(path, observations: Observations) -> pathlib.Path:
+    """Save a rig's observations of a moving target as a CSV file, atomically.
+
+    **Arguments:**
+
+    - `path`: the file to write (replaced whole, or not at all).
+    - `observations`: an `Observations`.
+
+    The CSV has the header `camera,frame,point,target_x,target_y,target_z,pixel_x,pixel_y` and
+    one row per observation: the camera's name, the frame's id, the point's id, the point's
+    coordinates on the target (the same in every row of that point) and the pixel. Rows with
+    empty fields name what no observation would: `,,point,x,y,z,,` a point of the target that
+    nobody saw, `,frame,,,,,,` a frame in which nobody saw anything (these come first), and
+    `camera,,,,,,,` a camera that saw nothing (in its place among the cameras), so that
+    reading back gives the same arrays, names and ids. Numbers are written with Python's
+    shortest exact representation: reading back gives the same doubles.
+
+    **Example:**
+
+    ```python
+    >>> import tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> board = np.array([[0.0, 0.0, 0.0], [0.054, 0.0, 0.0]])
+    >>> pixels = np.array([[[[10.0, 20.0], [np.nan, np.nan]]], [[[11.5, 21.0], [40.0, 22.0]]]])
+    >>> o = mc.io.Observations(board, pixels, np.isfinite(pixels[..., 0]), ["cam_0", "cam_1"],
+    ...                        frames=np.array([416]), points=np.array([0, 1]))
+    >>> path = mc.io.save_observations(pathlib.Path(tempfile.mkdtemp()) / "obs.csv", o)
+    >>> print(path.read_text(), end="")
+    camera,frame,point,target_x,target_y,target_z,pixel_x,pixel_y
+    cam_0,416,0,0.0,0.0,0.0,10.0,20.0
+    cam_1,416,0,0.0,0.0,0.0,11.5,21.0
+    cam_1,416,1,0.054,0.0,0.0,40.0,22.0
+    >>> back = mc.io.load_observations(path)
+    >>> bool(np.array_equal(back.pixels, o.pixels, equal_nan=True)), back.cameras
+    (True, ['cam_0', 'cam_1'])
+
+    ```
+    """
+    import csv
+    import io as _io
+
+    o = _checked_observations(observations)
+    buffer = _io.StringIO()
+    out = csv.writer(buffer, lineterminator="\n")
+    out.writerow(_OBSERVATION_COLUMNS)
+    target = [[_number(v) for v in row] for row in o.target]
+    for n in np.flatnonzero(~o.mask.any((0, 1))):  # points nobody saw
+        out.writerow(["", "", int(o.points[n]), *target[n], "", ""])
+    for f in np.flatnonzero(~o.mask.any((0, 2))):  # frames in which nobody saw anything
+        out.writerow(["", int(o.frames[f]), "", "", "", "", "", ""])
+    for c, camera in enumerate(o.cameras):
+        frames, points = np.nonzero(o.mask[c])
+        for f, n in zip(frames, points):
+            xy = map(_number, o.pixels[c, f, n])
+            out.writerow([camera, int(o.frames[f]), int(o.points[n]), *target[n], *xy])
+        if not frames.size:
+            out.writerow([camera, "", "", "", "", "", "", ""])  # a camera that saw nothing
+    return write_atomic(path, buffer.getvalue())
+
+
+def _csv_table(path, required, optional=(), *, strict=True):
+    """`(column index by name, [(line number, fields)])` of a CSV file, blank lines and (with
+    `strict`) `#` comments skipped; `ValueError` naming the file and line for a missing column,
+    or (with `strict`) an unknown or repeated one, or a row with another number of fields."""
+    import csv
+
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot be read ({error})") from None
+    lines = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip()]
+    if strict:
+        lines = [(n, ln) for n, ln in lines if not ln.startswith("#")]
+    if not lines:
+        raise ValueError(f"{path}: empty; expected the header {','.join(required)}.")
+    rows = csv.reader([ln for _, ln in lines])
+    header = [h.strip() for h in next(rows)]
+    known = (*required, *optional)
+    unknown = [h for h in header if h not in known] if strict else []
+    missing = [h for h in required if h not in header]
+    if unknown or missing or len(set(header)) != len(header):
+        problem = f"unknown column {unknown[0]!r}" if unknown else (
+            f"no {missing[0]!r} column" if missing else "a repeated column")  # fmt: skip
+        raise ValueError(f"{path}:{lines[0][0]}: {problem}; the header is {','.join(required)}.")
+    table = []
+    for (line, _), row in zip(lines[1:], rows):
+        if len(row) != len(header):
+            raise ValueError(f"{path}:{line}: {len(row)} fields; the header has {len(header)}.")
+        table.append((line, [v.strip() for v in row]))
+    return {h: k for k, h in enumerate(header)}, table
+
+
+def _parse_numbers(where, names, values, *, blank_ok=True):
+    """The floats of `values` (named `names`), None if all are blank; `ValueError` if some are
+    not numbers, or NaN or inf."""
+    if blank_ok and not any(values):
+        return None
+    try:
+        xs = tuple(float(v) for v in values)
+    except ValueError:
+        raise ValueError(f"{where}: {', '.join(values)} are not all numbers.") from None
+    if not all(math.isfinite(x) for x in xs):
+        raise ValueError(f"{where}: NaN or inf in {', '.join(names)}.")
+    return xs
+
+
+def _parse_id(where, name, value, *, lenient=False):
+    """An integer id, None if blank; `lenient` also takes integral floats such as `416.0`."""
+    if not value:
+        return None
+    try:
+        number = int(value)
+    except ValueError:
+        try:
+            x = float(value) if lenient else math.nan
+        except ValueError:
+            x = math.nan
+        if not x.is_integer():
+            raise ValueError(f"{where}: {name} {value!r} is not an integer.") from None
+        number = int(x)
+    if not -(2**63) <= number < 2**63:
+        raise ValueError(f"{where}: {name} {value!r} is out of range (64-bit integers).")
+    return number
+
+
+def _observations(target, seen, cameras, frames, points) -> Observations:
+    """Arrays from `target` {point: xyz} and `seen` {(camera, frame, point): (line, xy)}."""
+    frames = np.array(sorted(frames), dtype=np.int64)
+    points = np.array(sorted(points), dtype=np.int64)
+    camera_index = {c: i for i, c in enumerate(cameras)}
+    pixels = np.full((len(cameras), len(frames), len(points), 2), np.nan)
+    if seen:
+        keys = list(seen)
+        c = np.array([camera_index[k[0]] for k in keys])
+        f = np.searchsorted(frames, [k[1] for k in keys])
+        n = np.searchsorted(points, [k[2] for k in keys])
+        pixels[c, f, n] = [xy for _, xy in seen.values()]
+    xyz = np.array([target[p] for p in points.tolist()], dtype=float).reshape(-1, 3)
+    mask = ~np.isnan(pixels[..., 0])
+    return Observations(xyz, pixels, mask, [str(s) for s in cameras], frames, points)
+
+
+def load_observations(path) -> Observations:
+    """Read a file written by `save_observations` (or by hand, in the same format).
+
+    Columns may come in any order; blank lines and lines starting with `#` are skipped. Cameras
+    come back in the order they first appear; frames and points sorted by id. Raises
+    `ValueError` naming the file and line for anything malformed: a missing or unknown column,
+    a number that is not one, an id that is not an integer, a point whose target coordinates
+    differ from an earlier row's, a camera that saw the same point in the same frame twice,
+    NaN or inf where a camera saw a point, a row that is neither an observation nor one of the
+    rows that name a point, a frame or a camera alone.
+
+    **Example:**
+
+    ```python
+    >>> import tempfile, pathlib, mvcalib as mc
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "obs.csv"
+    >>> _ = path.write_text(
+    ...     "camera,frame,point,target_x,target_y,target_z,pixel_x,pixel_y\\n"
+    ...     ",,2,0.1,0.1,0,,\\n"  # point 2 of the target, seen by nobody
+    ...     "left,5,0,0,0,0,100.5,200\\n"
+    ...     "right,3,1,0.1,0,0,110,210.25\\n"
+    ...     "idle,,,,,,,\\n")  # a camera that saw nothing
+    >>> o = mc.io.load_observations(path)
+    >>> o.cameras, o.frames.tolist(), o.points.tolist(), o.mask.shape, int(o.mask.sum())
+    (['left', 'right', 'idle'], [3, 5], [0, 1, 2], (3, 2, 3), 2)
+
+    ```
+    """
+    path = pathlib.Path(path)
+    column, table = _csv_table(path, _OBSERVATION_COLUMNS)
+    cameras, frames, target, seen = {}, set(), {}, {}
+    for line, row in table:
+        where = f"{path}:{line}"
+        field = {h: row[k] for h, k in column.items()}
+        camera = field["camera"]
+        frame = _parse_id(where, "frame", field["frame"])
+        point = _parse_id(where, "point", field["point"])
+        xyz = _parse_numbers(where, _TARGET, [field[h] for h in _TARGET])
+        xy = _parse_numbers(where, _PIXEL, [field[h] for h in _PIXEL])
+        if (point is None) != (xyz is None):
+            raise ValueError(f"{where}: a point needs its target coordinates, and they a point.")
+        if point is not None:
+            first = target.setdefault(point, (line, xyz))
+            if first[1] != xyz:
+                raise ValueError(f"{where}: point {point} has other target coordinates than on "
+                                 f"line {first[0]}.")  # fmt: skip
+        if frame is not None:
+            frames.add(frame)
+        if not camera:
+            if xy is not None or (frame is None and point is None):
+                raise ValueError(f"{where}: a pixel (or an empty row) without a camera.")
+            continue  # a point or a frame named without an observation
+        cameras.setdefault(camera, len(cameras))
+        if frame is None and point is None and xy is None:
+            continue  # a camera that saw nothing
+        if frame is None or point is None or xy is None:
+            raise ValueError(f"{where}: camera {camera!r} without a frame, a point and a pixel.")
+        first = seen.setdefault((camera, frame, point), (line, xy))
+        if first[0] != line:
+            raise ValueError(f"{where}: camera {camera!r} saw point {point} in frame {frame} on "
+                             f"line {first[0]} too.")  # fmt: skip
+    if not cameras:
+        raise ValueError(f"{path}: no cameras.")
+    target = {p: xyz for p, (_, xyz) in target.items()}
+    return _observations(target, seen, list(cameras), frames, target)
+
+
+# ---------------------------------------------------------------------------- caliscope
+_CALISCOPE = ("sync_index", "cam_id", "keypoint_id", "img_loc_x", "img_loc_y", "obj_loc_x",
+              "obj_loc_y")  # fmt: skip
+
+
+def load_caliscope(xy_csv) -> Observations:
+    """Read caliscope's `xy.csv`: a rig's detections of a ChArUco board over frames.
+
+    Each row is one board corner (`keypoint_id`) seen by one camera (`cam_id`) in one
+    synchronised frame (`sync_index`): its pixel (`img_loc_x`, `img_loc_y`) and its place on
+    the board (`obj_loc_x`, `obj_loc_y`, and `obj_loc_z` if there is one; else the board is
+    the plane z = 0). Other columns (`frame_index`, `frame_time`, `object_id`) are not used,
+    but a file with more than one `object_id` is refused. The cameras are named `cam_<id>` in
+    ascending id order, as `load_caliscope_cameras` names them; frames are the `sync_index`es
+    and points the `keypoint_id`s. Raises `ValueError` naming the file and line for a missing
+    column, a number or id that is not one, NaN or inf, a corner whose board coordinates are
+    not exactly those of an earlier row, or a camera seeing a corner twice in one frame.
+
+    **Example:**
+
+    ```python
+    >>> import tempfile, pathlib, mvcalib as mc
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "xy.csv"
+    >>> _ = path.write_text(
+    ...     "sync_index,cam_id,frame_index,frame_time,object_id,keypoint_id,"
+    ...     "img_loc_x,img_loc_y,obj_loc_x,obj_loc_y\\n"
+    ...     "416,1,413,48033.0,0,0,710.9,507.4,0.054,0.054\\n"
+    ...     "416,0,410,48033.0,0,3,671.8,505.3,0.054,0.108\\n"
+    ...     "417,1,414,48033.1,0,3,672.0,505.0,0.054,0.108\\n")
+    >>> o = mc.io.load_caliscope(path)
+    >>> o.cameras, o.frames.tolist(), o.points.tolist(), o.target.tolist()
+    (['cam_0', 'cam_1'], [416, 417], [0, 3], [[0.054, 0.054, 0.0], [0.054, 0.108, 0.0]])
+    >>> o.pixels[1, 0].tolist()  # camera 1 in frame 416
+    [[710.9, 507.4], [nan, nan]]
+
+    ```
+    """
+    path = pathlib.Path(xy_csv)
+    column, table = _csv_table(path, _CALISCOPE, strict=False)
+    has_z, objects = "obj_loc_z" in column, {}
+    target, seen, cameras, frames = {}, {}, set(), set()
+    for line, row in table:
+        where = f"{path}:{line}"
+
+        def integer(name, where=where, row=row):
+            value = _parse_id(where, name, row[column[name]], lenient=True)
+            if value is None:
+                raise ValueError(f"{where}: no {name}.")
+            return value
+
+        frame, camera, point = (integer(h) for h in ("sync_index", "cam_id", "keypoint_id"))
+        if "object_id" in column:
+            first = objects.setdefault(row[column["object_id"]], line)
+            if len(objects) > 1:
+                raise ValueError(f"{where}: another object_id than on line {first}; "
+                                 "one board at a time.")  # fmt: skip
+        names = ("obj_loc_x", "obj_loc_y", *(("obj_loc_z",) if has_z else ()))
+        xyz = _parse_numbers(where, names, [row[column[h]] for h in names], blank_ok=False)
+        xyz = xyz if has_z else (*xyz, 0.0)
+        xy = _parse_numbers(where, _CALISCOPE[3:5], [row[column[h]] for h in _CALISCOPE[3:5]],
+                            blank_ok=False)  # fmt: skip
+        first = target.setdefault(point, (line, xyz))
+        if first[1] != xyz:
+            raise ValueError(f"{where}: keypoint {point} is at other board coordinates than on "
+                             f"line {first[0]}.")  # fmt: skip
+        first = seen.setdefault((camera, frame, point), (line, xy))
+        if first[0] != line:
+            raise ValueError(f"{where}: camera {camera} saw keypoint {point} in frame {frame} on "
+                             f"line {first[0]} too.")  # fmt: skip
+        cameras.add(camera)
+        frames.add(frame)
+    if not seen:
+        raise ValueError(f"{path}: no observations.")
+    order = sorted(cameras)
+    seen = {(f"cam_{c}", f, n): v for (c, f, n), v in seen.items()}
+    target = {p: xyz for p, (_, xyz) in target.items()}
+    return _observations(target, seen, [f"cam_{c}" for c in order], frames, target)
+
+
+def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
+    """Load caliscope's `camera_array.toml`: `(cameras, names)`.
+
+    Each `[cameras.<id>]` table holds `matrix` (K), `distortions` (OpenCV's k1 k2 p1 p2 k3),
+    `rotation` (world to camera: a 3 x 3 matrix, or a Rodrigues vector as older caliscope
+    wrote it) and `translation` (`x_cam = R X + t`). The cameras come back in ascending id
+    order, named `cam_<id>` as `load_caliscope` names them; every table is loaded, including
+    those caliscope marks `ignore`. A camera not yet calibrated (no `matrix`, `rotation` or
+    `translation`) has NaN for what it lacks. A fisheye camera is refused. Needs Python >= 3.11
+    (`tomllib`).
+
+    **Example:**
+
+    ```python
+    >>> import tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "camera_array.toml"
+    >>> _ = path.write_text(
+    ...     "[cameras.0]\\nmatrix = [[900.0, 0.0, 640.0], [0.0, 900.0, 360.0], [0.0, 0.0, 1.0]]\\n"
+    ...     "distortions = [-0.3, 0.1, 0.0, 0.0, 0.0]\\n"
+    ...     "rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\\n"
+    ...     "translation = [0.0, 0.0, 1.5]\\n")
+    >>> cameras, names = mc.io.load_caliscope_cameras(path)
+    >>> names, cameras.project(np.zeros((1, 3))).tolist()
+    (['cam_0'], [[[640.0, 360.0]]])
+
+    ```
+    """
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
+    from ._rotation import rodrigues
+
+    path = pathlib.Path(camera_array_toml)
+    try:
+        document = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
+    tables = document.get("cameras")
+    keys = [k for k in tables if re.fullmatch(r"\d+", k)] if isinstance(tables, dict) else []
+    if not keys:
+        raise ValueError(f"{path}: no [cameras.<id>] tables.")
+    keys.sort(key=int)
+
+    def given(value):  # caliscope writes a missing value as absent, or as "null"
+        return value is not None and not (isinstance(value, str) and value == "null")
+
+    fields = []
+    for key in keys:
+        table = tables[key]
+        try:
+            if table.get("fisheye", False) is True:
+                raise ValueError("a fisheye camera; mvcalib's model is Brown-Conrady")
+            K = table.get("matrix")
+            K = np.array(K, dtype=float) if given(K) else np.full((3, 3), np.nan)
+            dist = table.get("distortions")
+            dist = np.array(dist, dtype=float) if given(dist) else np.zeros(5)
+            R = table.get("rotation")
+            R = np.array(R, dtype=float) if given(R) else np.full((3, 3), np.nan)
+            if R.shape == (3,):
+                R = np.asarray(rodrigues(jnp.asarray(R)))
+            t = table.get("translation")
+            t = np.array(t, dtype=float) if given(t) else np.full(3, np.nan)
+            if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+                raise ValueError(f"matrix {K.shape}, rotation {R.shape}, translation {t.shape}")
+            if dist.ndim != 1 or len(dist) > 5:
+                raise ValueError(f"{dist.size} distortions; mvcalib has k1 k2 p1 p2 k3")
+        except (AttributeError, TypeError, ValueError) as error:
+            raise ValueError(f"{path}: [cameras.{key}] is malformed ({error}).") from None
+        fields.append((K, R, t, np.pad(dist, (0, 5 - len(dist)))))
+    K, R, t, dist = (np.stack(f) for f in zip(*fields))
+    return Camera.from_matrices(K, R, t, dist), [f"cam_{k}" for k in keys]

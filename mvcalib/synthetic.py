@@ -285,3 +285,154 @@ def _paper_scene(key, world, registration_ids, noise, global_noise) -> PaperScen
         fixed_point=fixed_point,
         image_size=image_size,
     )
+
+
+# ------------------------------------------------------------------------------ moving target
+class BoardRig(eqx.Module):
+    """A rig of cameras around a volume through which a target is moved: the ground truth of
+    `mvcalib.calibrate_rig`.
+
+    - `cameras`: the true cameras `(C,)`, in the world frame.
+    - `target`: the target's points `(N, 3)` in its own frame (a board has z = 0).
+    - `poses`: the target's pose in each frame, target to world, a `RigidTransform` `(F,)`.
+    - `pixels_true`: exact projections `(C, F, N, 2)`; `pixels`: with Gaussian noise added.
+    - `mask`: `(C, F, N)`: True where camera c saw point n in frame f.
+    """
+
+    cameras: Camera
+    target: Float[Array, "N 3"]
+    poses: RigidTransform
+    pixels_true: Float[Array, "C F N 2"]
+    pixels: Float[Array, "C F N 2"]
+    mask: Bool[Array, "C F N"]
+    image_size: tuple[int, int] = eqx.field(static=True)
+
+
+def board(rows: int = 6, cols: int = 8, spacing: float = 0.05) -> np.ndarray:
+    """The `rows x cols` inner corners of a chessboard (or a dot grid) of `spacing`, `(N, 3)`,
+    z = 0, row by row."""
+    y, x = np.mgrid[:rows, :cols]
+    return np.c_[x.ravel() * spacing, y.ravel() * spacing, np.zeros(rows * cols)]
+
+
+def board_rig(
+    key,
+    n_cameras: int = 8,
+    n_frames: int = 100,
+    target: np.ndarray | str = "board",
+    *,
+    noise: float = 0.0,
+    distortion: bool = True,
+    dropped: tuple[float, float] | None = None,
+    radius: float = 2.0,
+    volume: float = 0.8,
+    image_size: tuple[int, int] = (1280, 800),
+    dtype=None,
+) -> BoardRig:
+    """Cameras in a ring around a volume through which a target moves (metres).
+
+    The cameras stand on a circle of `radius` around the origin, evenly spaced with 10 degrees
+    of jitter, 0-0.4 m up or down, looking at the origin (jittered by 0.1 m) with focal lengths
+    of 900-1300 px, the principal point within 20 px of the image centre and, with
+    `distortion`, k1 in [-0.25, 0.05] and k2 in [-0.05, 0.1]. In each frame the target is
+    somewhere in the cube of side `volume` around the origin. A board (`target="board"`, 6 x 8
+    corners 5 cm apart, or any planar `(N, 3)` array with z = 0) faces a randomly chosen camera
+    within 40 degrees and is seen by the cameras in front of it (within 70 degrees of its
+    normal); a 3-D target (`"object"`: the three faces of a 30 cm box corner, 48 points, or any
+    array) takes any orientation and is seen from everywhere. Each camera also misses a random
+    fraction of its frames, drawn from `dropped` per camera (default 0-30 % for a board, 40-75 %
+    for an object), and the points outside its image.
+
+    **Example:**
+
+    ```python
+    >>> import jax, mvcalib as mc
+    >>> rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=10, noise=0.3)
+    >>> rig.pixels.shape, rig.target.shape
+    ((4, 10, 48, 2), (48, 3))
+
+    ```
+    """
+    dtype = _default_dtype(dtype)
+    if isinstance(target, str):
+        if target == "board":
+            target = board()
+        elif target == "object":
+            g = (np.arange(4) + 0.5) * 0.3 / 4
+            u, v = (x.ravel() for x in np.meshgrid(g, g))
+            z = np.zeros_like(u)
+            target = np.concatenate([np.c_[u, v, z], np.c_[u, z, v], np.c_[z, u, v]])
+        else:
+            raise ValueError(f"`target` is 'board', 'object' or an (N, 3) array; got {target!r}.")
+    target = np.asarray(target, dtype=float)
+    planar = bool(np.all(target[:, 2] == 0))
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel())
+    C, F = n_cameras, n_frames
+
+    # the cameras
+    azimuth = 2 * np.pi * np.arange(C) / C + np.deg2rad(rng.uniform(-10, 10, C))
+    centers = np.c_[radius * np.cos(azimuth), radius * np.sin(azimuth), rng.uniform(-0.4, 0.4, C)]
+    R, t = look_at(
+        jnp.asarray(centers), jnp.asarray(rng.uniform(-0.1, 0.1, (C, 3))), jnp.array([0, 0, -1.0])
+    )
+    f = rng.uniform(900, 1300, C)
+    width, height = image_size
+    dist = np.zeros((C, 5))
+    if distortion:
+        dist[:, 0], dist[:, 1] = rng.uniform(-0.25, 0.05, C), rng.uniform(-0.05, 0.1, C)
+    cameras = Camera(
+        f, f * rng.uniform(0.99, 1.01, C),
+        (width - 1) / 2 + rng.uniform(-20, 20, C), (height - 1) / 2 + rng.uniform(-20, 20, C),
+        np.asarray(R), np.asarray(t), dist=dist,
+    )  # fmt: skip
+
+    # the target's poses: a board's normal (its z, away from the cameras it faces) points away
+    # from a chosen camera, within 40 degrees
+    positions = rng.uniform(-volume / 2, volume / 2, (F, 3))
+    if planar:
+        toward = centers[rng.integers(0, C, F)] - positions
+        z = -toward / np.linalg.norm(toward, axis=1, keepdims=True)
+        tilt = _random_rotation(rng, F, np.deg2rad(40.0))
+        z = np.einsum("fij,fj->fi", tilt, z)
+        x = np.cross(z, rng.normal(size=(F, 3)))
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        rotations = np.stack([x, np.cross(z, x), z], axis=-1)  # columns: the target's axes
+    else:
+        rotations = _random_rotation(rng, F, np.pi)
+    # the target's centre at the chosen position
+    center = target.mean(0)
+    translations = positions - np.einsum("fij,j->fi", rotations, center)
+    poses = RigidTransform(jnp.asarray(rotations, dtype), jnp.asarray(translations, dtype))
+
+    world = np.einsum("fij,nj->fni", rotations, target) + translations[:, None]  # (F, N, 3)
+    cams = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype)[:, None], cameras)  # (C, 1)
+    true = np.asarray(cams.project(jnp.asarray(world, dtype)[None]))  # (C, F, N, 2)
+    depth = np.asarray(cams.depth(jnp.asarray(world, dtype)[None]))
+    inside = (true[..., 0] >= 0) & (true[..., 0] <= width - 1)
+    inside &= (true[..., 1] >= 0) & (true[..., 1] <= height - 1)
+    seen = np.ones((C, F), bool)
+    if planar:
+        to_camera = centers[:, None] - positions[None]  # (C, F, 3)
+        to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
+        seen &= np.einsum("cfi,fi->cf", to_camera, rotations[:, :, 2]) < -np.cos(np.deg2rad(70))
+    dropped = ((0.0, 0.3) if planar else (0.4, 0.75)) if dropped is None else dropped
+    seen &= rng.uniform(size=(C, F)) >= rng.uniform(*dropped, C)[:, None]
+    mask = seen[..., None] & inside & (depth > 0)
+    noisy = true + noise * rng.normal(size=true.shape)
+    cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), cameras)
+    return BoardRig(
+        cameras, jnp.asarray(target, dtype), poses, jnp.asarray(true, dtype),
+        jnp.asarray(noisy, dtype), jnp.asarray(mask), tuple(image_size),
+    )  # fmt: skip
+
+
+def _random_rotation(rng, n: int, max_angle: float) -> np.ndarray:
+    """`n` rotations about uniformly random axes by angles uniform in [0, max_angle]."""
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = rng.uniform(0, max_angle, n)
+    K = np.zeros((n, 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    K -= K.transpose(0, 2, 1)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * K + (1 - c) * (K @ K)

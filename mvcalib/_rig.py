@@ -1,0 +1,920 @@
+"""Calibration of a rig from a target moved through its volume: every camera's intrinsics,
+distortion and pose, and the target's pose in every frame, from observations `(C, F, N)`.
+
+The closed form first, batched over every (camera, frame) pair: a planar target's homography
+and Zhang's intrinsics per camera, then each pair's target pose (a 3-D target: the DLT of each
+pair). Each pair of cameras' relative pose is the robust average (Weiszfeld's geometric median)
+over the frames both saw; the cameras are chained to the reference over a maximum spanning tree
+of the camera graph weighted by shared frames (Prim's algorithm, in a loop of C steps), and each
+frame's pose is the robust average of its cameras' views of it. Then one Levenberg–Marquardt
+over all cameras and frames (an optimistix solver, `_SchurLM`), whose normal equations are solved
+with the frames eliminated (the Schur complement): a step costs `F (C P)^2` for the reduced
+camera system of `C P` unknowns, linear in the number of frames.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from . import _dlt, _validate
+from ._camera import Camera, _distort, undistort_points
+from ._dlt import _similarity
+from ._planar import MIN_PLANE_POINTS, _homography_kernel, _intrinsics, _plane_frame, _pose
+from ._refine import (
+    _MIN_DAMPING,
+    _RESULT_MESSAGES,
+    PARAMETERS,
+    Cauchy,
+    Huber,
+    _definite_solve,
+    _free_parameters,
+    _pack,
+    _parameters,
+    _robust_weights,
+    _unpack,
+)
+from ._registration import RigidTransform
+from ._rotation import nearest_rotation, rodrigues
+from ._status import Status
+
+MIN_OBJECT_POINTS = _validate.MIN_POINTS  # the DLT of one (camera, frame) pair of a 3-D target
+_POSE = tuple(PARAMETERS.index(n) for n in ("rx", "ry", "rz", "tx", "ty", "tz"))
+_ROTATION = _POSE[:3]
+
+
+# ------------------------------------------------------------------------------ the result
+class RigCalibration(eqx.Module):
+    """The result of `calibrate_rig`.
+
+    - `cameras`: `(C,)` in the reference frame (camera `reference`'s, or the target's in the
+      origin frame); NaN for cameras whose `status` is not OK.
+    - `target_poses`: `(F,)` the target's pose in each frame, target to reference frame (`Y = R X
+      + t`); NaN for frames no calibrated camera saw with enough points.
+    - `status`: `(C,)` per camera (`mvcalib.Status`): OK; TOO_FEW_POINTS (no frame with enough
+      points); DEGENERATE (its frames do not determine its intrinsics); NOT_CONNECTED (no chain
+      of shared frames links it to the reference camera).
+    - `initial`: `(C,)` the closed-form cameras that seeded the refinement.
+    - `rms`: reprojection RMS over every observation used (pixels); `camera_rms` `(C,)`,
+      `frame_rms` `(F,)` the same per camera and per frame.
+    - `residuals`: `(C, F, N, 2)` reprojected minus observed, zero where unused; `used` `(C, F,
+      N)` the observations that took part; `inliers` those within 3 scales of a robust loss.
+    - `skipped`: `(C, F)` the pairs that had observations but too few points (fewer than 4 of a
+      planar target, 6 of a 3-D one) and were left out; `n_skipped` how many.
+    - `position_std`: `(C, 3)` standard errors of each camera's centre (world units), and
+      `rotation_std` `(C, 3)` of its rotation (degrees, about the camera's axes), in the gauge
+      of the reference camera (which has none); `parameter_std` `(C, P)` of the free parameters
+      `parameter_names`, whose covariance blocks are `covariance` `(C, P, P)`.
+    - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful).
+    """
+
+    cameras: Camera
+    target_poses: RigidTransform
+    status: Int[Array, " C"]
+    initial: Camera
+    rms: Float[Array, ""]
+    camera_rms: Float[Array, " C"]
+    frame_rms: Float[Array, " F"]
+    residuals: Float[Array, "C F N 2"]
+    used: Bool[Array, "C F N"]
+    inliers: Bool[Array, "C F N"]
+    skipped: Bool[Array, "C F"]
+    position_std: Float[Array, "C 3"]
+    rotation_std: Float[Array, "C 3"]
+    parameter_std: Float[Array, "C P"]
+    covariance: Float[Array, "C P P"]
+    iterations: Int[Array, ""]
+    result: Int[Array, ""]
+    parameter_names: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def ok(self) -> Bool[Array, " C"]:
+        return self.status == Status.OK
+
+    @property
+    def converged(self) -> Bool[Array, ""]:
+        return self.result == 0
+
+    @property
+    def n_skipped(self) -> Int[Array, ""]:
+        return jnp.sum(self.skipped)
+
+    def messages(self) -> list[str]:
+        """One line per camera: its status's message."""
+        return [Status(int(s)).message for s in np.asarray(self.status)]
+
+    def __str__(self) -> str:
+        status = np.asarray(self.status)
+        rms, n = np.asarray(self.camera_rms), np.asarray(self.used).sum(axis=(1, 2))
+        frames = np.asarray(self.used).any(-1).sum(-1)
+        pos = np.asarray(self.position_std)
+        lines = [
+            f"rig of {len(status)} cameras, {self.frame_rms.shape[0]} frames: RMS "
+            f"{float(self.rms):.3f} px, {_RESULT_MESSAGES[int(self.result)]} after "
+            f"{int(self.iterations)} steps; {int(self.n_skipped)} (camera, frame) pairs skipped",
+            "camera  frames  points  rms (px)  centre std  status",
+        ]
+        for c in range(len(status)):
+            lines.append(
+                f"{c:>6}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
+                f"{np.linalg.norm(pos[c]):>10.3g}  {Status(int(status[c])).name}"
+            )
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ closed form
+def _weiszfeld(x, w, iterations: int = 20):
+    """The weighted geometric median of the rows of `x (F, k)` (Weiszfeld's iteration from the
+    weighted mean), robust to a minority of wild rows; NaN where every weight is zero."""
+    x = jnp.where(w[:, None] > 0, x, 0.0)
+    total = jnp.sum(w)
+    m = jnp.sum(w[:, None] * x, 0) / total
+    floor = 1e-12 * (jnp.max(jnp.abs(x)) + 1.0)
+
+    def step(m, _):
+        d = jnp.maximum(jnp.linalg.norm(x - m, axis=1), floor)
+        v = w / d
+        return jnp.sum(v[:, None] * x, 0) / jnp.sum(v), None
+
+    return jax.lax.scan(step, m, None, length=iterations)[0]
+
+
+def _average_pose(R, t, w):
+    """The robust average of poses `R (F, 3, 3)`, `t (F, 3)` weighted by `w (F,)`: the nearest
+    rotation to the geometric median of the matrices (chordal), the median of the translations."""
+    m = _weiszfeld(R.reshape(-1, 9), w).reshape(3, 3)
+    return nearest_rotation(m), _weiszfeld(t, w)
+
+
+def _pair_poses_planar(plane, xy, pixels, mask, K, rcond):
+    """Each (camera, frame) pair's target pose from its homography, and each camera's K (Zhang's
+    closed form from its own frames unless given)."""
+    homography = jax.vmap(
+        jax.vmap(functools.partial(_homography_kernel, rcond=rcond), (None, 0, 0)), (None, 0, 0)
+    )
+    H, status = homography(xy, pixels, mask)
+    ok = status == Status.OK
+    determined = jnp.ones(ok.shape[0], bool)
+    if K is None:
+
+        def zhang(H, ok, pixels, mask):
+            seen = (mask & ok[:, None]).reshape(-1)
+            T, _, _ = _similarity(pixels.reshape(-1, 2), seen.astype(pixels.dtype))
+            K, _, determined = _intrinsics(H, ok, T, False, rcond)
+            return K, determined & (jnp.sum(ok) >= 3)
+
+        K, determined = jax.vmap(zhang)(H, ok, pixels, mask)
+    pose = jax.vmap(jax.vmap(_pose, (None, 0, None, 0)), (0, 0, None, 0))
+    R, t = pose(K, H, xy, mask)
+    # from the plane's frame back to the target's: x_cam = R (A X + b) + t
+    R, t = R @ plane.R, jnp.einsum("cfij,j->cfi", R, plane.t) + t
+    return K, determined, R, t, ok
+
+
+def _pair_poses_object(target, pixels, mask, K, rcond):
+    """Each (camera, frame) pair's camera from the DLT; each camera's K the median over its
+    frames unless given."""
+    C, F = mask.shape[:2]
+    N = target.shape[0]
+    P, status, _, _ = _dlt.solve_validated(
+        target, pixels.reshape(C * F, N, 2), mask.reshape(C * F, N), rcond, jnp.inf
+    )
+    cams = Camera.from_projection(P.reshape(C, F, 3, 4), skew=False)
+    ok = (status == Status.OK).reshape(C, F)
+    determined = jnp.any(ok, 1)
+    if K is None:
+        med = lambda x: _dlt._masked_median(x, ok, sort=True)  # noqa: E731, SLF001
+        au, av, u0, v0 = (med(x) for x in (cams.alpha_u, cams.alpha_v, cams.u0, cams.v0))
+        zero = jnp.zeros_like(au)
+        K = jnp.stack(
+            [
+                jnp.stack([au, zero, u0], -1),
+                jnp.stack([zero, av, v0], -1),
+                jnp.stack([zero, zero, zero + 1.0], -1),
+            ],
+            -2,
+        )
+    return K, determined, cams.R, cams.t, ok
+
+
+def _relative_poses(R, t, ok):
+    """For every pair of cameras (c, d): camera d's frame to camera c's, `(C, C, 3, 3)`,
+    `(C, C, 3)`, the robust average over the frames both saw, and how many they share."""
+
+    def from_d(inputs):
+        Rd, td, okd = inputs  # (F, 3, 3), (F, 3), (F,)
+        Rcd = jnp.einsum("cfij,fkj->cfik", R, Rd)
+        tcd = t - jnp.einsum("cfij,fj->cfi", Rcd, td)
+        w = (ok & okd[None]).astype(R.dtype)
+        Rm, tm = jax.vmap(_average_pose)(Rcd, tcd, w)
+        return Rm, tm, jnp.sum(w, 1)
+
+    eye = jnp.eye(3, dtype=R.dtype)
+    safe = lambda a, k: jnp.where(ok.reshape(ok.shape + (1,) * k), a, eye if k == 2 else 0.0)  # noqa: E731
+    Rs, ts = safe(R, 2), safe(t, 1)
+    Rm, tm, shared = jax.lax.map(from_d, (Rs, ts, ok))
+    # (the map runs over d): Rm[d, c] is d -> c
+    return jnp.swapaxes(Rm, 0, 1), jnp.swapaxes(tm, 0, 1), jnp.swapaxes(shared, 0, 1)
+
+
+def _chain(Rrel, trel, shared, reference):
+    """Every camera's pose in the reference camera's frame, over the maximum spanning tree of
+    the camera graph weighted by shared frames (Prim's algorithm from `reference`); cameras the
+    tree does not reach are not `linked`."""
+    C = shared.shape[0]
+    dtype = Rrel.dtype
+    linked = jnp.arange(C) == reference
+    R = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (C, 3, 3))
+    t = jnp.zeros((C, 3), dtype)
+
+    def grow(_, state):
+        linked, R, t = state
+        score = jnp.where(linked[None, :] & ~linked[:, None], shared, -1.0)  # [new c, from d]
+        k = jnp.argmax(score)
+        c, d = k // C, k % C
+        grows = score.reshape(-1)[k] > 0
+        Rc = Rrel[c, d] @ R[d]
+        tc = Rrel[c, d] @ t[d] + trel[c, d]
+        return (
+            linked.at[c].set(linked[c] | grows),
+            R.at[c].set(jnp.where(grows, Rc, R[c])),
+            t.at[c].set(jnp.where(grows, tc, t[c])),
+        )
+
+    return jax.lax.fori_loop(0, C - 1, grow, (linked, R, t))
+
+
+@functools.partial(jax.jit, static_argnames=("planar", "given"))
+def _initialise(target, plane, pixels, mask, cameras, reference, rcond, planar, given):
+    """The closed-form rig: cameras, frame poses (target to reference camera), the pairs and
+    frames used, each camera's status."""
+    C, F, N = mask.shape
+    dtype = pixels.dtype
+    if given:  # the given lens distortion removed first, so that the closed form is exact
+        pixels = undistort_points(jax.tree_util.tree_map(lambda x: x[:, None], cameras), pixels)
+        pixels = jnp.where(mask[..., None], pixels, 0.0)
+    K = cameras.K if given else None
+    if planar:
+        xy = plane.apply(target)[:, :2]
+        K, determined, Rp, tp, ok = _pair_poses_planar(plane, xy, pixels, mask, K, rcond)
+    else:
+        K, determined, Rp, tp, ok = _pair_poses_object(target, pixels, mask, K, rcond)
+    ok = ok & determined[:, None]
+    Rrel, trel, shared = _relative_poses(Rp, tp, ok)
+    linked, R, t = _chain(Rrel, trel, shared, reference)
+    usable = linked & jnp.any(ok, 1)
+    status = jnp.select(
+        [~jnp.any(ok | ~determined[:, None], 1), ~determined, ~linked],
+        [Status.TOO_FEW_POINTS, Status.DEGENERATE, Status.NOT_CONNECTED],
+        Status.OK,
+    ).astype(jnp.int32)
+    status = jnp.where(
+        usable, Status.OK, jnp.where(status == Status.OK, Status.TOO_FEW_POINTS, status)
+    ).astype(jnp.int32)
+    pair = ok & usable[:, None]
+    # each frame's pose in the reference frame, from every camera that saw it
+    Rf = jnp.einsum("cji,cfjk->cfik", R, Rp)
+    tf = jnp.einsum("cji,cfj->cfi", R, tp - t[:, None])
+    eye = jnp.eye(3, dtype=dtype)
+    Rf = jnp.where(pair[..., None, None], Rf, eye)
+    tf = jnp.where(pair[..., None], tf, 0.0)
+    Rf, tf = jax.vmap(_average_pose, (1, 1, 1))(Rf, tf, pair.astype(dtype))
+    frame_ok = jnp.any(pair, 0)
+    Rf = jnp.where(frame_ok[:, None, None], Rf, eye)
+    tf = jnp.where(frame_ok[:, None], tf, 0.0)
+    dist = cameras.dist if given else jnp.zeros((C, 5), dtype)
+    skew = K[:, 0, 1]
+    initial = Camera(K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], R, t, skew=skew, dist=dist)
+    distance = _dlt._masked_median(jnp.linalg.norm(tp, axis=-1).reshape(-1), pair.reshape(-1),
+                                   sort=True)  # fmt: skip  # noqa: SLF001
+    return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance
+
+
+# ------------------------------------------------------------------------------ refinement
+def _frame_pose(yf, R0f, t0f, distance):
+    return rodrigues(yf[:3]) @ R0f, t0f + yf[3:] * distance
+
+
+def _block_residuals(yc, yf, cam, frame, data, free, loss):
+    """The weighted residuals `(N, 2)` of one camera in one frame, from the increments `yc`
+    (the camera's free parameters, natural units) and `yf` (the frame's pose)."""
+    p0, R0, scale, move = cam
+    R0f, t0f, move_f, distance = frame
+    target, pixels, mask = data
+    p = _parameters(yc * move, p0, scale, free)
+    Rf, tf = _frame_pose(yf * move_f, R0f, t0f, distance)
+    r = jnp.where(mask[:, None], _project(_unpack(p, R0), target @ Rf.T + tf, mask) - pixels, 0.0)
+    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[:, None]
+
+
+def _project(camera: Camera, world, mask):
+    """`camera.project(world)`, with the hidden points (which may lie anywhere, e.g. at the
+    camera's centre in a frame nobody saw) replaced by the point on the optical axis before the
+    division, so that neither they nor their derivatives are NaN."""
+    x, y, z = camera._camera_coordinates(world)  # noqa: SLF001
+    x, y, z = jnp.where(mask, x, 0.0), jnp.where(mask, y, 0.0), jnp.where(mask, z, 1.0)
+    xd, yd = _distort(x / z, y / z, camera.dist[..., None, :])
+    u = camera.alpha_u[..., None] * xd + camera.skew[..., None] * yd + camera.u0[..., None]
+    return jnp.stack([u, camera.alpha_v[..., None] * yd + camera.v0[..., None]], -1)
+
+
+def _pinned(y, args):
+    """Residuals that hold the parameters no observation determines at their seed (the reference
+    camera's pose, fixed parameters of unusable cameras, unseen frames), so that the problem
+    stays well posed for the solver and for implicit derivatives."""
+    move_c, move_f = args[3], args[6]
+    return (1.0 - move_c) * y["cams"], (1.0 - move_f)[:, None] * y["frames"]
+
+
+def _residuals(y, args, free, loss):
+    """All residuals: `pixels (C, F, N, 2)` and the pinned parameters."""
+    p0, R0, scale, move_c, R0f, t0f, move_f, distance, target, pixels, mask = args
+    frame = (R0f, t0f, move_f, distance)
+
+    def camera(yc, p0, R0, scale, move, pixels, mask):
+        block = lambda yf, R0f, t0f, mf, px, m: _block_residuals(  # noqa: E731
+            yc, yf, (p0, R0, scale, move), (R0f, t0f, mf, distance), (target, px, m), free, loss
+        )
+        return jax.vmap(block)(y["frames"], *frame[:3], pixels, mask)
+
+    r = jax.vmap(camera)(y["cams"], p0, R0, scale, move_c, pixels, mask)
+    pin_c, pin_f = _pinned(y, args)
+    return {"pixels": r, "cams": pin_c, "frames": pin_f}
+
+
+class _Normal(eqx.Module):
+    """The normal equations `J^T J`, `J^T r` of the rig's problem, by blocks: `U (C, P, P)`
+    per camera, `V (F, 6, 6)` per frame, `W (C, F, P, 6)` between them; `gc`, `gf`; the cost."""
+
+    cost: Array
+    U: Array
+    V: Array
+    W: Array
+    gc: Array
+    gf: Array
+
+
+def _normal(y, args, free, loss) -> _Normal:
+    """The blocks of the normal equations at `y`, camera by camera (a loop: one camera's
+    Jacobians over all frames at a time, so that memory grows with F, not C F)."""
+    p0, R0, scale, move_c, R0f, t0f, move_f, distance, target, pixels, mask = args
+
+    def camera(inputs):
+        yc, p0, R0, scale, move, px, m = inputs
+
+        def block(yc, yf, R0f, t0f, mf, px, m):
+            r = _block_residuals(
+                yc, yf, (p0, R0, scale, move), (R0f, t0f, mf, distance), (target, px, m), free, loss
+            )
+            return r, r
+
+        jac = jax.jacfwd(block, argnums=(0, 1), has_aux=True)
+        (Jc, Jf), r = jax.vmap(jac, (None, 0, 0, 0, 0, 0, 0))(
+            yc, y["frames"], R0f, t0f, move_f, px, m
+        )
+        return (
+            jnp.einsum("fnkp,fnkq->pq", Jc, Jc),
+            jnp.einsum("fnki,fnkj->fij", Jf, Jf),
+            jnp.einsum("fnkp,fnki->fpi", Jc, Jf),
+            jnp.einsum("fnkp,fnk->p", Jc, r),
+            jnp.einsum("fnki,fnk->fi", Jf, r),
+            jnp.sum(r * r),
+        )
+
+    U, V, W, gc, gf, cost = jax.lax.map(camera, (y["cams"], p0, R0, scale, move_c, pixels, mask))
+    pin_c, pin_f = _pinned(y, args)
+    eye_c = jax.vmap(jnp.diag)(1.0 - move_c)
+    eye_f = jnp.eye(6, dtype=V.dtype) * (1.0 - move_f)[:, None, None]
+    return _Normal(
+        cost=jnp.sum(cost) + jnp.sum(pin_c * pin_c) + jnp.sum(pin_f * pin_f),
+        U=U + eye_c,
+        V=jnp.sum(V, 0) + eye_f,
+        W=W,
+        gc=gc + (1.0 - move_c) * pin_c,
+        gf=jnp.sum(gf, 0) + (1.0 - move_f)[:, None] * pin_f,
+    )
+
+
+def _schur_solve(n: _Normal, damping):
+    """The step `-(J^T J + damping diag(J^T J))^-1 J^T r` with the frames eliminated: the
+    reduced camera system `S = U - sum_f W_f V_f^-1 W_f^T` (C P unknowns, Cholesky), then each
+    frame's step. NaN where a matrix is not positive definite."""
+    C, P = n.gc.shape
+    dtype = n.gc.dtype
+    floor = lambda d: jnp.maximum(d, jnp.finfo(dtype).eps * jnp.max(d))  # noqa: E731
+    dU = floor(jnp.diagonal(n.U, axis1=-2, axis2=-1))
+    dV = floor(jnp.diagonal(n.V, axis1=-2, axis2=-1))
+    U = n.U + damping * jax.vmap(jnp.diag)(dU)
+    V = n.V + damping * jax.vmap(jnp.diag)(dV)
+    V_inv = jax.vmap(lambda v: _definite_solve(v, jnp.eye(6, dtype=dtype)))(V)
+    Y = jnp.einsum("cfpi,fij->cfpj", n.W, V_inv)
+    S = jnp.einsum("cfpi,dfqi->cpdq", Y, n.W).reshape(C * P, C * P)
+    S = _block_diagonal(U) - S
+    b = -(n.gc - jnp.einsum("cfpi,fi->cp", Y, n.gf)).reshape(-1)
+    dc = _definite_solve(S, b[:, None])[:, 0].reshape(C, P)
+    df = -jnp.einsum("fij,fj->fi", V_inv, n.gf + jnp.einsum("cfpi,cp->fi", n.W, dc))
+    return dc, df
+
+
+def _block_diagonal(blocks):
+    """`(C, P, P)` blocks as the `(C P, C P)` block-diagonal matrix."""
+    C, P, _ = blocks.shape
+    eye = jnp.eye(C, dtype=blocks.dtype)
+    return jnp.einsum("cd,cpq->cpdq", eye, blocks).reshape(C * P, C * P)
+
+
+def _quadratic(n: _Normal, dc, df):
+    """`dy^T J^T J dy` from the blocks."""
+    return (
+        jnp.einsum("cp,cpq,cq->", dc, n.U, dc)
+        + 2.0 * jnp.einsum("cp,cfpi,fi->", dc, n.W, df)
+        + jnp.einsum("fi,fij,fj->", df, n.V, df)
+    )
+
+
+class _SchurLMState(eqx.Module):
+    normal: _Normal
+    damping: Array
+    growth: Array
+    done: Array
+    num_steps: Array
+
+
+class _SchurLM(optx.AbstractLeastSquaresSolver):
+    """Levenberg–Marquardt (Gauss–Newton model, Marquardt's scaling) for the rig's problem, with
+    the normal equations built by blocks (`options["normal"](y, args) -> _Normal`) and solved
+    with the frames eliminated (`_schur_solve`). Its steps, damping updates and stopping tests
+    are `mvcalib.SecantLM`'s without the secant term, except that a good step divides the damping
+    by 100, not 10: the reduced camera system's condition number reaches 1e10 (pixels of focal
+    length against distortion), Marquardt's scaled damping bends the step until it is below
+    ~1e-8, and at 10 per step the solve crept there (30 steps against 10 on 8 cameras x 100
+    frames). Converged when an accepted step is shorter than `rtol` standard errors, or a trial
+    changed the cost by its rounding only."""
+
+    rtol: float = 1e-5
+    atol: float = 1e-12
+    norm: Callable = optx.max_norm
+    initial_damping: float = 1e-3
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del fn, f_struct, aux_struct, tags
+        dtype = y["cams"].dtype
+        return _SchurLMState(
+            normal=options["normal"](y, args),
+            damping=jnp.asarray(self.initial_damping, dtype),
+            growth=jnp.asarray(10.0, dtype),
+            done=jnp.asarray(False),
+            num_steps=jnp.asarray(0),
+        )
+
+    def step(self, fn, y, args, options, state, tags):
+        del fn, tags
+        n = state.normal
+        dc, df = _schur_solve(n, state.damping)
+        trial = {"cams": y["cams"] + dc, "frames": y["frames"] + df}
+        new = options["normal"](trial, args)
+        cost_new = jnp.where(jnp.isnan(new.cost), jnp.inf, new.cost)
+        accept = cost_new < n.cost
+        quadratic = _quadratic(n, dc, df)
+        predicted = -2.0 * (jnp.sum(dc * n.gc) + jnp.sum(df * n.gf)) - quadratic
+        actual = n.cost - cost_new
+        good = actual > 0.25 * predicted
+        dof = jnp.maximum(options["n_residuals"] - options["n_parameters"], 1)
+        tolerance = self.rtol**2 * jnp.minimum(cost_new, n.cost) / dof
+        short = (quadratic <= tolerance) | (jnp.maximum(self.norm(dc), self.norm(df)) <= self.atol)
+        exact = ~accept & (jnp.abs(cost_new - n.cost) <= 64 * jnp.finfo(n.cost.dtype).eps * n.cost)
+        stalled = ~accept & (jnp.maximum(predicted, jnp.abs(actual)) <= tolerance)
+        done = (accept & short) | exact | stalled | (n.cost == 0)
+        damping = jnp.where(
+            accept,
+            jnp.where(good, jnp.maximum(0.01 * state.damping, _MIN_DAMPING), state.damping),
+            state.damping * state.growth,
+        )
+        keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
+        state = _SchurLMState(
+            normal=keep(new, n),
+            damping=damping,
+            growth=jnp.where(accept, 10.0, 2.0 * state.growth),
+            done=done,
+            num_steps=state.num_steps + 1,
+        )
+        return keep(trial, y), state, None
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, y, args, options, tags
+        return state.done, optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        del fn, args, options, state, tags, result
+        return y, aux, {}
+
+
+def _refine(
+    initial, frames, pair, frame_ok, distance, target, pixels, mask, movable, free, loss, max_steps
+):
+    """The joint least-squares solution from the closed-form rig: the increments `y` and the
+    solver's outcome."""
+    C, F = pair.shape
+    dtype = pixels.dtype
+    p0 = jax.vmap(_pack)(initial)
+    f = jnp.abs(p0[:, :1])
+    one = jnp.ones((C, 1), dtype)
+    scale = jnp.concatenate(
+        [f.repeat(5, 1), one.repeat(3, 1), (distance * one).repeat(3, 1), one.repeat(5, 1)], 1
+    )
+    used = mask & pair[..., None]
+    pixels = jnp.where(used[..., None], pixels, 0.0)
+    move_f = frame_ok.astype(dtype)
+    args = (
+        p0,
+        initial.R,
+        scale,
+        movable,
+        frames.R,
+        frames.t,
+        move_f,
+        distance,
+        target,
+        pixels,
+        used,
+    )
+    y0 = {"cams": jnp.zeros((C, len(free)), dtype), "frames": jnp.zeros((F, 6), dtype)}
+    options = {
+        "normal": functools.partial(_normal, free=free, loss=loss),
+        "n_residuals": 2 * jnp.sum(used),
+        "n_parameters": jnp.sum(movable) + 6 * jnp.sum(frame_ok),
+    }
+    sol = optx.least_squares(
+        functools.partial(_residuals, free=free, loss=loss),
+        _SchurLM(),
+        y0,
+        args,
+        options=options,
+        max_steps=max_steps,
+        throw=False,
+        adjoint=optx.ImplicitAdjoint(),
+    )
+    return sol.value, sol.stats["num_steps"], sol.result._value, args, used  # noqa: SLF001
+
+
+def _cameras_and_frames(y, args, free):
+    p0, R0, scale, move_c, R0f, t0f, move_f, distance = args[:8]
+    p = jax.vmap(lambda yc, p0, s: _parameters(yc, p0, s, free))(y["cams"] * move_c, p0, scale)
+    cams = jax.vmap(_unpack)(p, R0)
+    Rf, tf = jax.vmap(_frame_pose, (0, 0, 0, None))(
+        y["frames"] * move_f[:, None], R0f, t0f, distance
+    )
+    return cams, RigidTransform(Rf, tf)
+
+
+def _uncertainty(y, args, free, loss):
+    """Covariance of each camera's free parameters `sigma^2 S^-1` (S the reduced camera system
+    at the solution, undamped; the frames' uncertainty is in it), and the standard errors of
+    each camera's centre and rotation."""
+    n = _normal(y, args, free, loss)
+    C, P = n.gc.shape
+    move_c, mask = args[3], args[10]
+    V_inv = jax.vmap(lambda v: _definite_solve(v, jnp.eye(6, dtype=v.dtype)))(n.V)
+    S = _block_diagonal(n.U) - jnp.einsum("cfpi,fij,dfqj->cpdq", n.W, V_inv, n.W).reshape(
+        C * P, C * P
+    )
+    n_parameters = jnp.sum(move_c) + 6 * jnp.sum(args[6])
+    dof = jnp.maximum(2 * jnp.sum(mask) - n_parameters, 1)
+    pin_c, pin_f = _pinned(y, args)
+    sigma2 = (n.cost - jnp.sum(pin_c**2) - jnp.sum(pin_f**2)) / dof
+    cov_all = sigma2 * _definite_solve(S, jnp.eye(C * P, dtype=S.dtype)).reshape(C, P, C, P)
+    cov = jnp.einsum("cpcq->cpq", cov_all) * move_c[:, :, None] * move_c[:, None, :]
+    p0, R0, scale = args[:3]
+
+    def centre(yc, p0, R0, s):
+        cam = _unpack(_parameters(yc, p0, s, free), R0)
+        return cam.center
+
+    J = jax.vmap(jax.jacfwd(centre))(y["cams"] * move_c, p0, R0, scale)  # (C, 3, P)
+    position = jnp.einsum("cip,cpq,ciq->ci", J, cov, J)
+    rotation = jnp.zeros((C, 3), cov.dtype)
+    for k, index in enumerate(_ROTATION):
+        if index in free:
+            j = free.index(index)
+            rotation = rotation.at[:, k].set(cov[:, j, j])
+    std = jnp.sqrt(jnp.diagonal(cov, axis1=-2, axis2=-1))
+    scale_free = scale[:, jnp.asarray(free)] if free else scale[:, :0]
+    return (
+        cov * scale_free[:, :, None] * scale_free[:, None, :],
+        std * scale_free,
+        (jnp.sqrt(position), jnp.rad2deg(jnp.sqrt(rotation))),
+    )
+
+
+@functools.partial(eqx.filter_jit)
+def _calibrate_rig(
+    target,
+    plane,
+    pixels,
+    mask,
+    cameras,
+    reference,
+    rcond,
+    movable_intrinsics,
+    *,
+    planar,
+    given,
+    free,
+    loss,
+    max_steps,
+):
+    initial, frames, pair, frame_ok, status, distance = _initialise(
+        target, plane, pixels, mask, cameras, reference, rcond, planar=planar, given=given
+    )
+    C = pair.shape[0]
+    ok = status == Status.OK
+    # what may move: the free parameters of calibrated cameras, not the reference's pose
+    pose = jnp.asarray([i in _POSE for i in free], bool)
+    movable = ok[:, None] & (movable_intrinsics | pose)[None, :]
+    movable = movable & ~((jnp.arange(C) == reference)[:, None] & pose[None, :])
+    unit = Camera(
+        1.0, 1.0, 0.0, 0.0, jnp.eye(3, dtype=pixels.dtype), jnp.array([0.0, 0.0, 1.0], pixels.dtype)
+    )
+    safe = jax.tree_util.tree_map(
+        lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+        initial,
+        jax.tree_util.tree_map(
+            lambda b: jnp.broadcast_to(b, (C,) + b.shape).astype(pixels.dtype), unit
+        ),
+    )
+    y, steps, result, args, used = _refine(
+        safe,
+        frames,
+        pair,
+        frame_ok,
+        distance,
+        target,
+        pixels,
+        mask,
+        movable.astype(pixels.dtype),
+        free,
+        loss,
+        max_steps,
+    )
+    cams, poses = _cameras_and_frames(y, args, free)
+    cov, std, (position_std, rotation_std) = _uncertainty(
+        jax.lax.stop_gradient(y), jax.lax.stop_gradient(args), free, loss
+    )
+    # the report, from the unweighted residuals
+    project = jax.vmap(
+        lambda cam, R, t: cam.project(jnp.einsum("fij,nj->fni", R, target) + t[:, None]),
+        (0, None, None),
+    )
+    residuals = jnp.where(used[..., None], project(cams, poses.R, poses.t) - pixels, 0.0)
+    square = jnp.sum(residuals**2, -1)
+    rms = jnp.sqrt(jnp.sum(square) / jnp.maximum(jnp.sum(used), 1))
+    camera_rms = jnp.sqrt(jnp.sum(square, (1, 2)) / jnp.sum(used, (1, 2)))
+    frame_rms = jnp.sqrt(jnp.sum(square, (0, 2)) / jnp.sum(used, (0, 2)))
+    threshold = jnp.inf if loss is None else 3.0 * loss.scale
+    inliers = used & (jnp.sqrt(square) <= threshold)
+    nan_c = lambda x: jnp.where(ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)  # noqa: E731
+    nan_f = lambda x: jnp.where(frame_ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)  # noqa: E731
+    return dict(
+        cameras=jax.tree_util.tree_map(nan_c, cams),
+        target_poses=jax.tree_util.tree_map(nan_f, poses),
+        status=status,
+        initial=jax.tree_util.tree_map(nan_c, initial),
+        rms=rms,
+        camera_rms=camera_rms,
+        frame_rms=frame_rms,
+        residuals=residuals,
+        used=used,
+        inliers=inliers,
+        position_std=nan_c(position_std),
+        rotation_std=nan_c(rotation_std),
+        parameter_std=nan_c(std),
+        covariance=nan_c(cov),
+        iterations=steps,
+        result=result,
+    )
+
+
+# ------------------------------------------------------------------------------ public
+def calibrate_rig(
+    target: Float[Array, "N 3"],
+    pixels: Float[Array, "C F N 2"],
+    mask: Bool[Array, "C F N"] | None = None,
+    *,
+    cameras: Camera | None = None,
+    fix: str | Sequence[str] = (),
+    distortion: Sequence[str] = ("k1", "k2", "p1", "p2"),
+    skew: bool = False,
+    reference: int | str = 0,
+    origin_frame: int | None = None,
+    loss: Huber | Cauchy | None = None,
+    rcond: float | None = None,
+    max_steps: int = 100,
+    verbose: bool = False,
+) -> RigCalibration:
+    """Calibrate a rig of C cameras from a target moved through its volume over F frames.
+
+    The target's pose in each frame is unknown, each camera may see it in only some frames, and
+    only some pairs of cameras share frames. Every camera's intrinsics (unless given), lens
+    distortion and pose, and the target's pose in every frame, are found as one least-squares
+    problem: a closed-form start batched over all (camera, frame) pairs, cameras chained to the
+    reference over the frames they share, then Levenberg–Marquardt with the frames eliminated
+    (see the module's docstring). Differentiable: `jax.grad` through the answer uses implicit
+    derivatives of the optimum.
+
+    **Arguments:**
+
+    - `target`: `(N, 3)` the target's points in its own frame: a planar board (any plane; z = 0
+      keeps the board's x, y) or a 3-D object.
+    - `pixels`: `(C, F, N, 2)` where camera c saw point n in frame f; `mask` `(C, F, N)` which
+      it saw (default: the finite pixels). A (camera, frame) pair with fewer than 4 points of a
+      planar target (6 of a 3-D one) is skipped, and counted in `skipped`.
+    - `cameras`: `(C,)` a starting rig (e.g. `mc.io.load_caliscope_cameras`): its intrinsics
+      and distortion replace the closed-form ones (its poses are not used); needed to `fix`
+      the intrinsics.
+    - `fix`: parameters held at their starting values, by name or group as for `mvcalib.refine`
+      (`"intrinsics"`, `"distortion"`, `"focal"`, `"principal_point"`, ...); `"pose"` holds
+      every camera's pose too, so that only the target's poses are fitted.
+    - `distortion`: the coefficients estimated (default k1, k2, p1, p2); `skew`: estimate it.
+    - `reference`: the camera whose frame is the world's (default 0), or `"target"`: the
+      target's frame in `origin_frame` (default: the frame seen by the most cameras), so that
+      the board sets the world's origin and floor.
+    - `loss`: `mc.Huber(scale)` or `mc.Cauchy(scale)` (pixels) for wrong detections.
+    - `rcond`: the closed form's threshold for a degenerate homography or DLT (default
+      sqrt(machine epsilon)); `max_steps` of Levenberg–Marquardt.
+    - `verbose`: print the stages and their times to stderr.
+
+    Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
+    which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
+    is neither planar nor 3-D. Cameras that cannot be calibrated get a status and NaN; the
+    others are calibrated as if they were absent.
+
+    **Example:**
+
+    ```python
+    >>> import jax, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=30, noise=0.3)
+    >>> result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    >>> bool(result.ok.all()), bool(result.rms < 0.35)
+    (True, True)
+    >>> # camera 2's centre, in camera 0's frame, against the truth (metres)
+    >>> truth = rig.cameras[0].to_camera(rig.cameras.center[2:3])[0]
+    >>> bool(np.linalg.norm(result.cameras.center[2] - truth) < 2e-3)
+    True
+
+    ```
+    """
+    tic = time.perf_counter()
+
+    def say(message):
+        if verbose:
+            print(f"calibrate_rig: {message} ({time.perf_counter() - tic:.2f} s)", file=sys.stderr)
+
+    target = _validate.floating("target", target, (None, 3), xp=np)
+    if target.ndim != 2:
+        raise ValueError(f"`target` must have shape (N, 3); got {tuple(target.shape)}.")
+    concrete = _validate.is_concrete(pixels, mask)
+    xp = np if concrete else jnp
+    pixels = _validate.floating("pixels", pixels, (None, 2), xp=xp)
+    N = target.shape[0]
+    if pixels.ndim != 4 or pixels.shape[2] != N:
+        raise ValueError(
+            f"`pixels` must have shape (C, F, N, 2) with N = {N} target points; got "
+            f"{tuple(pixels.shape)}."
+        )
+    C, F = pixels.shape[:2]
+    if mask is None:
+        mask = xp.all(xp.isfinite(pixels), -1)
+    mask = _validate.boolean_mask("mask", mask, (C, F, N), xp=xp)
+    if tuple(mask.shape) != (C, F, N):
+        raise ValueError(f"`mask` must have shape {(C, F, N)}; got {tuple(mask.shape)}.")
+    dtype = jnp.result_type(target.dtype, pixels.dtype)
+    planar = _is_planar(target)
+    minimum = MIN_PLANE_POINTS if planar else MIN_OBJECT_POINTS
+    if concrete:
+        mask = np.asarray(mask)
+        bad = mask & ~np.all(np.isfinite(pixels), -1)
+        if bad.any():
+            where = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(
+                f"`pixels` has {int(bad.sum())} non-finite (NaN or inf) entries among the "
+                f"visible points, the first at (camera, frame, point) {where}. Mask them out "
+                "or fix the data."
+            )
+        if not mask.any():
+            raise ValueError("nothing is visible: `mask` is False everywhere.")
+    counts = mask.sum(-1)
+    skipped = (counts > 0) & (counts < minimum)
+    mask = mask & ~skipped[..., None]
+    if concrete and not mask.any():
+        raise ValueError(
+            f"no (camera, frame) pair sees {minimum} or more points of the target: nothing to "
+            "calibrate from."
+        )
+    free = _free_parameters(distortion, fix, skew)
+    fixed = {PARAMETERS[i] for i in range(len(PARAMETERS))} - {PARAMETERS[i] for i in free}
+    fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
+    if cameras is None and fixes_intrinsics:
+        raise ValueError("holding the intrinsics fixed needs the starting rig: pass `cameras=`.")
+    if cameras is not None:
+        if cameras.batch_shape != (C,):
+            raise ValueError(
+                f"`cameras` must be a rig of {C} cameras, one per row of `pixels`; got batch "
+                f"shape {cameras.batch_shape}."
+            )
+        cameras = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), cameras)
+    # fixed parameters not given hold the closed form's values (zero distortion, zero skew)
+    movable = np.asarray([True] * len(free))
+    if isinstance(reference, str):
+        if reference != "target":
+            raise ValueError(f"`reference` is a camera index or 'target'; got {reference!r}.")
+        solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
+    else:
+        solve_reference = int(reference)
+        if not 0 <= solve_reference < C:
+            raise ValueError(f"`reference` {reference} is not a camera of the {C}.")
+    plane = (
+        _plane_frame(target, np.ones(N, bool), dtype) if planar else RigidTransform.identity(dtype)
+    )
+    rcond = float(np.sqrt(np.finfo(dtype).eps)) if rcond is None else float(rcond)
+    say(
+        f"{C} cameras, {F} frames, {N} points ({'planar' if planar else '3-D'} target); "
+        f"{int(np.sum(skipped)) if concrete else '?'} pairs skipped"
+    )
+    out = _calibrate_rig(
+        jnp.asarray(target, dtype),
+        plane,
+        jnp.asarray(pixels, dtype),
+        jnp.asarray(mask),
+        cameras,
+        solve_reference,
+        rcond,
+        jnp.asarray(movable),
+        planar=planar,
+        given=cameras is not None,
+        free=free,
+        loss=loss,
+        max_steps=max_steps,
+    )
+    result = RigCalibration(
+        skipped=jnp.asarray(skipped), parameter_names=tuple(PARAMETERS[i] for i in free), **out
+    )
+    if concrete and int(result.status[solve_reference]) != Status.OK:
+        raise ValueError(
+            f"the reference camera {solve_reference} cannot be calibrated: "
+            f"{Status(int(result.status[solve_reference])).message}. Choose another `reference`."
+        )
+    say(
+        f"RMS {float(result.rms):.3f} px after {int(result.iterations)} steps"
+        if concrete
+        else "traced"
+    )
+    if reference == "target":
+        result = _to_target_frame(result, origin_frame, concrete)
+    return result
+
+
+def _is_planar(target: np.ndarray) -> bool:
+    """Whether the target's points lie on a plane (else they must span 3-D)."""
+    c = target - target.mean(0)
+    s = np.linalg.svd(c, compute_uv=False)
+    tol = 1e-6 if target.dtype == np.float64 else 1e-4
+    if len(target) < 4 or s[1] <= tol * s[0]:
+        raise ValueError("the target's points are collinear or too few (at least 4 needed).")
+    return bool(s[2] <= tol * s[0])
+
+
+def _to_target_frame(result: RigCalibration, origin_frame, concrete) -> RigCalibration:
+    """The result with the target's frame in `origin_frame` as the world's."""
+    seen = np.asarray(result.used.any(-1).sum(0)) if concrete else None
+    f = int(np.argmax(seen)) if origin_frame is None else int(origin_frame)
+    if concrete and seen[f] == 0:
+        raise ValueError(f"`origin_frame` {f}: no calibrated camera saw the target in that frame.")
+    T = RigidTransform(result.target_poses.R[f], result.target_poses.t[f])
+    inv = T.inverse()
+    cams = result.cameras
+    R = cams.R @ T.R
+    t = jnp.einsum("cij,j->ci", cams.R, T.t) + cams.t
+    init = result.initial
+    cameras = eqx.tree_at(lambda c: (c.R, c.t), cams, (R, t))
+    initial = eqx.tree_at(
+        lambda c: (c.R, c.t), init, (init.R @ T.R, jnp.einsum("cij,j->ci", init.R, T.t) + init.t)
+    )
+    poses = RigidTransform(
+        inv.R @ result.target_poses.R, jnp.einsum("ij,fj->fi", inv.R, result.target_poses.t) + inv.t
+    )
+    # the centres' standard errors, rotated into the new frame (per axis, approximately)
+    position_std = jnp.sqrt(jnp.einsum("ij,cj->ci", T.R.T**2, result.position_std**2))
+    return eqx.tree_at(
+        lambda r: (r.cameras, r.initial, r.target_poses, r.position_std),
+        result,
+        (cameras, initial, poses, position_std),
+    )
