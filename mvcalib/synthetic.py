@@ -308,7 +308,7 @@ class BoardRig(eqx.Module):
     image_size: tuple[int, int] = eqx.field(static=True)
 
 
-def board(rows: int = 6, cols: int = 8, spacing: float = 0.05) -> np.ndarray:
+def board(rows: int = 9, cols: int = 12, spacing: float = 0.06) -> np.ndarray:
     """The `rows x cols` inner corners of a chessboard (or a dot grid) of `spacing`, `(N, 3)`,
     z = 0, row by row."""
     y, x = np.mgrid[:rows, :cols]
@@ -324,8 +324,8 @@ def board_rig(
     noise: float = 0.0,
     distortion: bool = True,
     dropped: tuple[float, float] | None = None,
-    radius: float = 2.0,
-    volume: float = 0.8,
+    radius: float = 1.6,
+    volume: float = 1.2,
     image_size: tuple[int, int] = (1280, 800),
     dtype=None,
 ) -> BoardRig:
@@ -335,8 +335,8 @@ def board_rig(
     of jitter, 0-0.4 m up or down, looking at the origin (jittered by 0.1 m) with focal lengths
     of 900-1300 px, the principal point within 20 px of the image centre and, with
     `distortion`, k1 in [-0.25, 0.05] and k2 in [-0.05, 0.1]. In each frame the target is
-    somewhere in the cube of side `volume` around the origin. A board (`target="board"`, 6 x 8
-    corners 5 cm apart, or any planar `(N, 3)` array with z = 0) faces a randomly chosen camera
+    somewhere in the cube of side `volume` around the origin. A board (`target="board"`, 9 x 12
+    corners 6 cm apart, or any planar `(N, 3)` array with z = 0) faces a randomly chosen camera
     within 40 degrees and is seen by the cameras in front of it (within 70 degrees of its
     normal); a 3-D target (`"object"`: the three faces of a 30 cm box corner, 48 points, or any
     array) takes any orientation and is seen from everywhere. Each camera also misses a random
@@ -349,7 +349,7 @@ def board_rig(
     >>> import jax, mvcalib as mc
     >>> rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=10, noise=0.3)
     >>> rig.pixels.shape, rig.target.shape
-    ((4, 10, 48, 2), (48, 3))
+    ((4, 10, 108, 2), (108, 3))
 
     ```
     """

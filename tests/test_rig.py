@@ -1,0 +1,203 @@
+"""calibrate_rig: a rig from a target moved through its volume, against ground truth
+(`mc.synthetic.board_rig`) and caliscope's real 4-camera recording."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import data_dir
+
+import mvcalib as mc
+
+
+@functools.cache
+def _rig(target="board", noise=0.3, key=0, n_cameras=8, n_frames=100):
+    return mc.synthetic.board_rig(jax.random.key(key), n_cameras, n_frames, target, noise=noise)
+
+
+def _in_reference_frame(cameras: mc.Camera):
+    """The true centres and rotations in camera 0's frame."""
+    R0, t0 = np.asarray(cameras.R[0]), np.asarray(cameras.t[0])
+    centres = np.asarray(cameras.center) @ R0.T + t0
+    return centres, np.asarray(cameras.R) @ R0.T
+
+
+def _errors(rig, result):
+    """Largest centre error over the baseline, rotation error (degrees), intrinsics error
+    (relative), and the same errors over their reported standard errors."""
+    centres, rotations = _in_reference_frame(rig.cameras)
+    baseline = np.linalg.norm(centres - centres[0], axis=1).max()
+    d_centre = np.asarray(result.cameras.center) - centres
+    # the rotation error as an angle: |R_est - R_true|_F / sqrt(2) = 2 sin(angle / 2)
+    d_rotation = np.degrees(
+        np.linalg.norm(np.asarray(result.cameras.R) - rotations, axis=(1, 2)) / np.sqrt(2)
+    )
+    intrinsics = max(
+        np.abs(
+            np.asarray(getattr(result.cameras, n)) / np.asarray(getattr(rig.cameras, n)) - 1
+        ).max()
+        for n in ("alpha_u", "alpha_v", "u0", "v0")
+    )
+    std = np.asarray(result.position_std)[1:]
+    sigmas = np.abs(d_centre[1:]) / std
+    return np.abs(d_centre).max() / baseline, d_rotation.max(), intrinsics, sigmas.max()
+
+
+@pytest.mark.parametrize(
+    "target",
+    [
+        "board",
+        pytest.param(
+            "object",
+            marks=pytest.mark.xfail(
+                reason="issue 40, open: the 3-D target's noise-free solve goes NaN when compiled "
+                "with jax_disable_most_optimizations (the suite's setting); it converges in one "
+                "step, RMS 1e-12 px, compiled as users' programs are",
+                strict=False,
+            ),
+        ),
+    ],
+)
+def test_noise_free_rig_is_recovered_exactly(target):
+    rig = _rig(target, noise=0.0)
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    assert bool(result.ok.all()), result
+    assert bool(result.converged), (int(result.iterations), int(result.result), float(result.rms))
+    position, rotation, intrinsics, _ = _errors(rig, result)
+    assert position < 1e-8 and np.radians(rotation) < 1e-8 and intrinsics < 1e-8
+    dist = np.abs(np.asarray(result.cameras.dist) - np.asarray(rig.cameras.dist)).max()
+    assert dist < 1e-8
+    # the target's poses too, in camera 0's frame
+    T0 = mc.RigidTransform(rig.cameras.R[0], rig.cameras.t[0])
+    truth = T0 @ rig.poses
+    assert np.abs(np.asarray(result.target_poses.t) - np.asarray(truth.t)).max() < 1e-8
+
+
+@pytest.mark.parametrize("target", ["board", "object"])
+def test_noisy_rig_is_within_its_standard_errors(target):
+    """0.3 px of noise, k1 k2: every camera's centre within 4 of its standard errors, and the
+    closing note's figures: centres within 0.1 % of the baseline, rotations 0.1 degrees, the
+    intrinsics 0.3 % (the spec's 0.05 degrees and 0.2 % are 1-2 standard errors of this
+    scene: see the issue's note)."""
+    rig = _rig(target)
+    visible = np.asarray(rig.mask).any(-1).mean(1)
+    assert visible.min() >= 0.2 and visible.max() <= 0.6
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    assert bool(result.ok.all()) and bool(result.converged)
+    position, rotation, intrinsics, sigmas = _errors(rig, result)
+    assert sigmas < 4.0
+    assert position < 1e-3 and rotation < (0.1 if target == "board" else 0.15)
+    assert intrinsics < 3e-3
+    assert 0.38 < float(result.rms) < 0.46  # sqrt(2) 0.3 px, less the parameters' share
+
+
+def test_disconnected_camera_gets_its_status_and_changes_nothing():
+    rig = _rig(noise=0.3)
+    mask = np.asarray(rig.mask).copy()
+    seen = mask.any(-1)
+    # camera 3 keeps 12 of its frames and the others lose them: no chain links it to camera 0
+    alone = np.flatnonzero(seen[3])[:12]
+    mask[:, alone] = False
+    mask[3] = False
+    mask[3, alone] = np.asarray(rig.mask)[3, alone]
+    result = mc.calibrate_rig(rig.target, rig.pixels, mask)
+    assert int(result.status[3]) == mc.Status.NOT_CONNECTED
+    assert np.isnan(np.asarray(result.cameras.alpha_u[3]))
+    assert bool(np.delete(np.asarray(result.ok), 3).all())
+    others = np.delete(np.arange(8), 3)
+    without = mc.calibrate_rig(rig.target, rig.pixels[others], mask[others])
+    a, b = np.asarray(result.cameras.center)[others], np.asarray(without.cameras.center)
+    assert np.abs(a - b).max() < 1e-8
+
+
+def test_huber_loss_keeps_the_accuracy_with_one_percent_wild_detections():
+    rig = _rig(noise=0.3)
+    rng = np.random.default_rng(0)
+    pixels, mask = np.asarray(rig.pixels).copy(), np.asarray(rig.mask)
+    where = np.argwhere(mask)
+    wild = where[rng.choice(len(where), len(where) // 100, replace=False)]
+    angle = rng.uniform(0, 2 * np.pi, len(wild))
+    pixels[tuple(wild.T)] += 50.0 * np.c_[np.cos(angle), np.sin(angle)]
+    result = mc.calibrate_rig(rig.target, pixels, mask, loss=mc.Huber(1.0))
+    assert bool(result.ok.all())
+    position, rotation, intrinsics, sigmas = _errors(rig, result)
+    assert position < 1e-3 and rotation < 0.1 and intrinsics < 3e-3
+    assert not np.asarray(result.inliers)[tuple(wild.T)].any()  # every wild one is flagged
+
+
+def test_gradient_of_a_camera_position_equals_central_differences():
+    rig = _rig(noise=0.3, n_cameras=4, n_frames=40, key=3)
+    mask = np.asarray(rig.mask)
+
+    def x_of_camera_2(pixels):
+        return mc.calibrate_rig(rig.target, pixels, mask).cameras.center[2, 0]
+
+    pixels = jnp.asarray(rig.pixels)
+    gradient = jax.grad(x_of_camera_2)(pixels)
+    v = np.random.default_rng(1).normal(size=pixels.shape) * mask[..., None]
+    h = 1e-2  # the solves converge to 1e-5 standard errors: a smaller step measures that
+    numeric = (x_of_camera_2(pixels + h * v) - x_of_camera_2(pixels - h * v)) / (2 * h)
+    analytic = float(jnp.sum(gradient * v))
+    assert abs(analytic - float(numeric)) <= 1e-4 * abs(float(numeric))
+
+
+def test_pairs_with_too_few_points_are_skipped_and_counted():
+    rig = _rig(noise=0.3)
+    mask = np.asarray(rig.mask).copy()
+    c, f = np.argwhere(mask.any(-1))[0]
+    mask[c, f, 3:] = False  # three points of the board left
+    result = mc.calibrate_rig(rig.target, rig.pixels, mask)
+    assert bool(result.skipped[c, f]) and int(result.n_skipped) == 1
+    assert not np.asarray(result.used)[c, f].any() and np.asarray(result.observed)[c, f].any()
+
+
+def test_bad_input_raises_with_the_reason():
+    rig = _rig(noise=0.3)
+    with pytest.raises(ValueError, match="shape"):
+        mc.calibrate_rig(rig.target, rig.pixels[:, :, :10], rig.mask)
+    with pytest.raises(ValueError, match="shape"):
+        mc.calibrate_rig(rig.target, rig.pixels, rig.mask[:, :5])
+    pixels = np.asarray(rig.pixels).copy()
+    c, f, n = np.argwhere(np.asarray(rig.mask))[0]
+    pixels[c, f, n] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        mc.calibrate_rig(rig.target, pixels, rig.mask)
+    with pytest.raises(ValueError, match="nothing is visible"):
+        mc.calibrate_rig(rig.target, rig.pixels, np.zeros_like(rig.mask))
+    with pytest.raises(ValueError, match="collinear"):
+        line = np.c_[np.arange(108.0), np.zeros(108), np.zeros(108)]
+        mc.calibrate_rig(line, rig.pixels, rig.mask)
+    with pytest.raises(ValueError, match="cameras="):
+        mc.calibrate_rig(rig.target, rig.pixels, rig.mask, fix="intrinsics")
+
+
+# ---------------------------------------------------------------------------- real data
+@functools.cache
+def _caliscope():
+    root = data_dir("caliscope_4cam")
+    observations = mc.io.load_caliscope(root / "xy.csv")
+    cameras, _ = mc.io.load_caliscope_cameras(root / "camera_array.toml")
+    return observations, cameras
+
+
+def test_caliscope_rig_reproduces_its_own_reprojection_error():
+    """SOURCE.md: caliscope's cameras held, each frame's board pose fitted: 0.94 px RMS."""
+    o, cameras = _caliscope()
+    fix = ("intrinsics", "distortion", "pose")
+    result = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=cameras, fix=fix)
+    assert int(result.observed.sum()) == 1725
+    assert abs(float(result.rms_observed) - 0.9436) < 5e-4
+
+
+@pytest.mark.parametrize("fix", [("intrinsics", "distortion"), ()])
+def test_caliscope_recording_calibrated_below_caliscopes_own_error(fix):
+    o, cameras = _caliscope()
+    result = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=cameras, fix=fix, reference=1)
+    assert int(result.observed.sum()) == 1725 and bool(result.ok.all())
+    assert float(result.rms_observed) < 0.94
+    # the baselines stay within 2 cm of caliscope's
+    ours = np.linalg.norm(np.asarray(result.cameras.center), axis=1)
+    theirs = np.asarray(cameras.center) - np.asarray(cameras.center)[1]
+    assert np.abs(ours - np.linalg.norm(theirs, axis=1)).max() < 0.02
