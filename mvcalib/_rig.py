@@ -27,7 +27,14 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _dlt, _validate
-from ._camera import Camera, _distort, undistort_points
+from ._camera import (
+    Camera,
+    _distort,
+    finite_cameras,
+    undistort_points,
+    unit_camera,
+    where_cameras,
+)
 from ._dlt import _similarity
 from ._planar import MIN_PLANE_POINTS, _homography_kernel, _intrinsics, _plane_frame, _pose
 from ._refine import (
@@ -307,7 +314,6 @@ def _initialise(
     cameras,
     reference,
     rcond,
-    refine_own,
     *,
     planar,
     given,
@@ -347,9 +353,8 @@ def _initialise(
     # each camera alone with its own frames: its intrinsics, distortion and the target's poses
     # (the closed form neglects the distortion, which the rig's cameras share no frames to fix)
     # (given cameras are the better start: their frames' poses only)
-    refine_own = refine_own & (not given)
     own, Rp, tp = _refine_own(
-        own, Rp, tp, ok, distance, target, raw, mask, refine_own, free, loss, max_steps
+        own, Rp, tp, ok, distance, target, raw, mask, not given, free, loss, max_steps
     )
     Rrel, trel, shared = _relative_poses(Rp, tp, ok)
     linked, R, t = _chain(Rrel, trel, shared, reference)
@@ -379,20 +384,20 @@ def _initialise(
     return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance
 
 
-def _refine_own(cams, Rp, tp, ok, distance, target, pixels, mask, movable, free, loss, max_steps):
-    """Each camera's intrinsics and distortion (the `movable` ones) and its frames' poses,
+def _refine_own(cams, Rp, tp, ok, distance, target, pixels, mask, lens, free, loss, max_steps):
+    """Each camera's free intrinsics and distortion (if `lens`) and its frames' poses,
     from its own frames alone: the rig's problem with one camera at the origin, for every camera
     at once (vmapped)."""
     eye = jnp.eye(3, dtype=Rp.dtype)
     pose = jnp.asarray([i in _POSE for i in free], bool)
-    move = (movable & ~pose).astype(Rp.dtype)[None]
+    move = (~pose & lens).astype(Rp.dtype)[None]
 
     def one(cam, Rp, tp, ok, pixels, mask):
         cam = eqx.tree_at(lambda c: (c.R, c.t), cam, (eye, jnp.zeros(3, Rp.dtype)))
         cam = jax.tree_util.tree_map(lambda x: x[None], cam)
         Rp = jnp.where(ok[:, None, None], Rp, eye)
         tp = jnp.where(ok[:, None], tp, jnp.array([0.0, 0.0, 1.0], Rp.dtype) * distance)
-        y, _, _, args, _ = _refine(
+        y, _, _, args, _, _ = _refine(
             cam,
             RigidTransform(Rp, tp),
             ok[None],
@@ -411,9 +416,12 @@ def _refine_own(cams, Rp, tp, ok, distance, target, pixels, mask, movable, free,
 
     refined, R, t = jax.vmap(one)(cams, Rp, tp, ok, pixels, mask)
     # a camera whose own solve failed keeps its closed form
-    good = jnp.all(jnp.isfinite(refined.dist), -1) & jnp.isfinite(refined.alpha_u)
-    pick = lambda a, b: jnp.where(good.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-    return jax.tree_util.tree_map(pick, refined, cams), pick(R, Rp), pick(t, tp)
+    good = finite_cameras(refined)
+    return (
+        where_cameras(good, refined, cams),
+        jnp.where(good[:, None, None, None], R, Rp),
+        jnp.where(good[:, None, None], t, tp),
+    )
 
 
 # ------------------------------------------------------------------------------ refinement
@@ -692,7 +700,8 @@ def _refine(
         throw=False,
         adjoint=optx.ImplicitAdjoint(),
     )
-    return sol.value, sol.stats["num_steps"], sol.result._value, args, used  # noqa: SLF001
+    out = (sol.value, sol.stats["num_steps"], sol.result._value, args, used)  # noqa: SLF001
+    return (*out, sol.state.normal)
 
 
 def _cameras_and_frames(y, args, free):
@@ -707,11 +716,10 @@ def _cameras_and_frames(y, args, free):
     return cams, RigidTransform(Rf, tf)
 
 
-def _uncertainty(y, args, free, loss):
+def _uncertainty(y, args, n: _Normal, free):
     """Covariance of each camera's free parameters `sigma^2 S^-1` (S the reduced camera system
-    at the solution, undamped; the frames' uncertainty is in it), and the standard errors of
-    each camera's centre and rotation."""
-    n = _normal(y, args, free, loss)
+    at the solution, undamped, from the solver's last normal equations `n`; the frames'
+    uncertainty is in it), and the standard errors of each camera's centre and rotation."""
     C, P = n.gc.shape
     move_c, mask = args[3], args[10]
     V_inv = jax.vmap(lambda v: _scaled_solve(v, jnp.eye(6, dtype=v.dtype)))(n.V)
@@ -755,7 +763,6 @@ def _calibrate_rig(
     cameras,
     reference,
     rcond,
-    movable_intrinsics,
     *,
     planar,
     given,
@@ -773,7 +780,6 @@ def _calibrate_rig(
             cameras,
             reference,
             rcond,
-            movable_intrinsics,
             planar=planar,
             given=given,
             free=free,
@@ -784,20 +790,9 @@ def _calibrate_rig(
     C = pair.shape[0]
     ok = status == Status.OK
     # what may move: the free parameters of calibrated cameras, not the reference's pose
-    movable = ok[:, None] & (movable_intrinsics | pose)[None, :]
-    movable = movable & ~((jnp.arange(C) == reference)[:, None] & pose[None, :])
-    unit = Camera(
-        1.0, 1.0, 0.0, 0.0, jnp.eye(3, dtype=pixels.dtype), jnp.array([0.0, 0.0, 1.0], pixels.dtype)
-    )
-    safe = jax.tree_util.tree_map(
-        lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
-        initial,
-        jax.tree_util.tree_map(
-            lambda b: jnp.broadcast_to(b, (C,) + b.shape).astype(pixels.dtype), unit
-        ),
-    )
-    y, steps, result, args, used = _refine(
-        safe,
+    movable = ok[:, None] & ~((jnp.arange(C) == reference)[:, None] & pose[None, :])
+    y, steps, result, args, used, normal = _refine(
+        where_cameras(ok, initial, unit_camera(pixels.dtype)),
         frames,
         pair,
         frame_ok,
@@ -812,7 +807,7 @@ def _calibrate_rig(
     )
     cams, poses = _cameras_and_frames(y, args, free)
     cov, std, (position_std, rotation_std) = _uncertainty(
-        jax.lax.stop_gradient(y), jax.lax.stop_gradient(args), free, loss
+        *jax.lax.stop_gradient((y, args, normal)), free
     )
     # the report, from the unweighted residuals
     project = jax.vmap(
@@ -951,14 +946,7 @@ def calibrate_rig(
     minimum = MIN_PLANE_POINTS if planar else MIN_OBJECT_POINTS
     if concrete:
         mask = np.asarray(mask)
-        bad = mask & ~np.all(np.isfinite(pixels), -1)
-        if bad.any():
-            where = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValueError(
-                f"`pixels` has {int(bad.sum())} non-finite (NaN or inf) entries among the "
-                f"visible points, the first at (camera, frame, point) {where}. Mask them out "
-                "or fix the data."
-            )
+        _validate._check_finite(target, pixels, mask)  # noqa: SLF001
         if not mask.any():
             raise ValueError("nothing is visible: `mask` is False everywhere.")
     counts = mask.sum(-1)
@@ -970,7 +958,7 @@ def calibrate_rig(
             "calibrate from."
         )
     free = _free_parameters(distortion, fix, skew)
-    fixed = {PARAMETERS[i] for i in range(len(PARAMETERS))} - {PARAMETERS[i] for i in free}
+    fixed = set(PARAMETERS) - {PARAMETERS[i] for i in free}
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:
         raise ValueError("holding the intrinsics fixed needs the starting rig: pass `cameras=`.")
@@ -981,8 +969,7 @@ def calibrate_rig(
                 f"shape {cameras.batch_shape}."
             )
         cameras = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), cameras)
-    # fixed parameters not given hold the closed form's values (zero distortion, zero skew)
-    movable = np.ones(len(free), bool)
+    # (fixed parameters not given hold the closed form's values: zero distortion, zero skew)
     if isinstance(reference, str):
         if reference != "target":
             raise ValueError(f"`reference` is a camera index or 'target'; got {reference!r}.")
@@ -1008,7 +995,6 @@ def calibrate_rig(
         cameras,
         solve_reference,
         rcond,
-        jnp.asarray(movable),
         planar=planar,
         given=cameras is not None,
         free=free,
@@ -1045,27 +1031,28 @@ def _is_planar(target: np.ndarray) -> bool:
 
 def _to_target_frame(result: RigCalibration, origin_frame, concrete) -> RigCalibration:
     """The result with the target's frame in `origin_frame` as the world's."""
-    seen = np.asarray(result.used.any(-1).sum(0)) if concrete else None
-    f = int(np.argmax(seen)) if origin_frame is None else int(origin_frame)
-    if concrete and seen[f] == 0:
+    if origin_frame is None:
+        if not concrete:
+            raise ValueError("with `reference='target'` inside a trace, give `origin_frame`.")
+        origin_frame = int(np.argmax(np.asarray(result.used.any(-1).sum(0))))
+    f = int(origin_frame)
+    if concrete and not bool(result.used[:, f].any()):
         raise ValueError(f"`origin_frame` {f}: no calibrated camera saw the target in that frame.")
-    T = RigidTransform(result.target_poses.R[f], result.target_poses.t[f])
-    inv = T.inverse()
-    cams = result.cameras
-    R = cams.R @ T.R
-    t = jnp.einsum("cij,j->ci", cams.R, T.t) + cams.t
-    init = result.initial
-    cameras = eqx.tree_at(lambda c: (c.R, c.t), cams, (R, t))
-    initial = eqx.tree_at(
-        lambda c: (c.R, c.t), init, (init.R @ T.R, jnp.einsum("cij,j->ci", init.R, T.t) + init.t)
-    )
-    poses = RigidTransform(
-        inv.R @ result.target_poses.R, jnp.einsum("ij,fj->fi", inv.R, result.target_poses.t) + inv.t
-    )
+    T = RigidTransform(result.target_poses.R[f], result.target_poses.t[f])  # target -> old world
+
+    def moved(cams: Camera) -> Camera:  # x_cam = R (T X) + t
+        pose = RigidTransform(cams.R, cams.t) @ T
+        return eqx.tree_at(lambda c: (c.R, c.t), cams, (pose.R, pose.t))
+
     # the centres' standard errors, rotated into the new frame (per axis, approximately)
-    position_std = jnp.sqrt(jnp.einsum("ij,cj->ci", T.R.T**2, result.position_std**2))
+    position_std = jnp.sqrt(jnp.einsum("ji,cj->ci", T.R**2, result.position_std**2))
     return eqx.tree_at(
         lambda r: (r.cameras, r.initial, r.target_poses, r.position_std),
         result,
-        (cameras, initial, poses, position_std),
+        (
+            moved(result.cameras),
+            moved(result.initial),
+            T.inverse() @ result.target_poses,
+            position_std,
+        ),
     )

@@ -201,3 +201,12 @@ def test_caliscope_recording_calibrated_below_caliscopes_own_error(fix):
     ours = np.linalg.norm(np.asarray(result.cameras.center), axis=1)
     theirs = np.asarray(cameras.center) - np.asarray(cameras.center)[1]
     assert np.abs(ours - np.linalg.norm(theirs, axis=1)).max() < 0.02
+
+
+def test_reference_target_puts_the_world_on_the_board():
+    rig = _rig(noise=0.0)
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, reference="target", origin_frame=5)
+    T = mc.RigidTransform(rig.poses.R[5], rig.poses.t[5])  # board in frame 5 -> true world
+    centres = np.asarray(T.inverse().apply(rig.cameras.center))
+    assert np.abs(np.asarray(result.cameras.center) - centres).max() < 1e-8
+    assert np.abs(np.asarray(result.target_poses.t[5])).max() < 1e-8
