@@ -239,7 +239,11 @@ def _pair_poses_object(target, pixels, mask, K, rcond):
     C, F = mask.shape[:2]
     N = target.shape[0]
     P, status, _, _ = _dlt.solve_validated(
-        target, pixels.reshape(C * F, N, 2), mask.reshape(C * F, N), rcond, jnp.inf
+        target,
+        pixels.reshape(C * F, N, 2),
+        mask.reshape(C * F, N),
+        rcond,
+        _dlt.DEFAULT_MAX_RELATIVE_RMS,
     )
     cams = Camera.from_projection(P.reshape(C, F, 3, 4), skew=False)
     ok = (status == Status.OK).reshape(C, F)
@@ -335,7 +339,11 @@ def _initialise(
         K, determined, Rp, tp, ok = _pair_poses_planar(plane, xy, pixels, mask, K, rcond)
     else:
         K, determined, Rp, tp, ok = _pair_poses_object(target, pixels, mask, K, rcond)
-    ok = ok & determined[:, None]
+    # (a pose that passed its own checks may still not be finite: with exact pixels and all but
+    # one visible point of a 3-D target on one face, the DLT's null space is two-dimensional and
+    # a rank-one P can come out, which does not decompose)
+    finite = jnp.all(jnp.isfinite(Rp), (-2, -1)) & jnp.all(jnp.isfinite(tp), -1)
+    ok = ok & determined[:, None] & finite
     distance = _dlt._masked_median(  # noqa: SLF001
         jnp.linalg.norm(tp, axis=-1).reshape(-1), ok.reshape(-1), sort=True
     )
