@@ -1,9 +1,10 @@
 """Command line: `mvcalib COMMAND ...` (also `python -m mvcalib COMMAND ...`).
 
-Commands: `calibrate` (correspondences file -> rig), `detect` (photographs -> dots, labelled),
-`report` (Table I, a summary and a figure of a rig on a correspondences file), `triangulate`
-(rig + 2-D tracks -> 3-D points), `calibrate-images` (photographs -> rig in one go) and `demo`
-(the paper's experiment). `mvcalib COMMAND --help` shows each one's options and examples.
+Commands: `calibrate` (correspondences file -> rig), `calibrate-rig` (a target moved in front
+of a rig over frames -> rig), `detect` (photographs -> dots, labelled), `report` (Table I, a
+summary and a figure of a rig on a correspondences file), `triangulate` (rig + 2-D tracks ->
+3-D points), `calibrate-images` (photographs -> rig in one go) and `demo` (the paper's
+experiment). `mvcalib COMMAND --help` shows each one's options and examples.
 
 Exit codes: 0 success; 1 the work failed (a camera could not be calibrated, a photograph not
 labelled, no point triangulated, an output not written); 2 bad usage or bad input (an unknown
@@ -32,6 +33,16 @@ EXAMPLES = {
                                   refined with distortion k1 k2 p1 p2, as OpenCV YAML
   mvcalib calibrate points.csv --distortion none --format colmap --image-size 1000 1100 \\
       --out sparse/               refined pinhole cameras as a COLMAP text model""",
+    "calibrate-rig": """\
+  mvcalib calibrate-rig observations.csv --out rig.json
+                                  every camera's intrinsics, distortion and pose (camera 0's
+                                  frame is the world's) and the target's pose in each frame
+  mvcalib calibrate-rig xy.csv --intrinsics camera_array.toml --fix intrinsics,distortion \\
+      --reference target --out rig.json
+                                  caliscope's detections with its intrinsics held; the board
+                                  in the frame most cameras saw is the world's floor
+  mvcalib calibrate-rig observations.csv --huber 2 --plot rig.png --out rig.json
+                                  robust to wrong detections, with a figure of the residuals""",
     "detect": """\
   mvcalib detect cam*.png --out dots.csv
                                   the dots of the box-corner target in each photo, labelled
@@ -64,8 +75,12 @@ files:
                    (one row per observation), or JSON (mvcalib.io.save_correspondences);
                    pixels are (x = column, y = row), origin at the centre of the top-left pixel
   tracks           the same without the world_* columns
+  observations     CSV with the header camera,frame,point,target_x,target_y,target_z,pixel_x,
+                   pixel_y (mvcalib.io.save_observations: a target moved over frames), or
+                   caliscope's xy.csv
   rig              JSON (mvcalib.io.save_json), OpenCV YAML (.yml, .yaml) or a COLMAP text
-                   model (a folder); cameras are matched to the files' camera names
+                   model (a folder); cameras are matched to the files' camera names;
+                   calibrate-rig --intrinsics also reads caliscope's camera_array.toml
 
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
@@ -89,6 +104,10 @@ def _distortion(text: str) -> tuple[str, ...]:
             f"{unknown[0]!r} is not one of {', '.join(_DISTORTION)} (or 'none')"
         )
     return names
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(n for n in re.split(r"[,\s]+", text.strip()) if n)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -149,6 +168,58 @@ def build_parser() -> argparse.ArgumentParser:
         help="the distortion coefficients to refine, e.g. k1,k2 or none (implies --refine)",
     )
     calibrate.add_argument("--image-size", **size, help="written to OpenCV and COLMAP files")
+
+    rig = command(
+        "calibrate-rig",
+        "calibrate a rig from a target moved in front of it over frames",
+        "Calibrate a rig of cameras from their views of a target (a board or a 3-D object) "
+        "moved through its volume, whose pose in each frame is unknown: every camera's "
+        "intrinsics, lens distortion and pose, and the target's pose in each frame, as one "
+        "least-squares problem (a closed-form start, then Levenberg-Marquardt with the frames "
+        "eliminated). Prints a table per camera (frames, points, RMS, the standard error of "
+        "its centre, status) and writes the rig as JSON; cameras that cannot be calibrated are "
+        "named with the reason (exit code 1) and recorded with their status.",
+    )
+    rig.add_argument(
+        "observations",
+        metavar="OBSERVATIONS",
+        help="observations .csv (mvcalib.io.save_observations) or caliscope's xy.csv",
+    )
+    rig.add_argument("--out", required=True, metavar="JSON", help="rig file to write")
+    rig.add_argument(
+        "--intrinsics",
+        metavar="RIG",
+        help="starting cameras, one per camera of the observations (matched by name, else in "
+        "order): a rig file (JSON, .yml, COLMAP folder) or caliscope's camera_array.toml",
+    )
+    rig.add_argument(
+        "--fix",
+        type=_names,
+        default=(),
+        metavar="LIST",
+        help="held at the --intrinsics values, e.g. intrinsics,distortion (groups: intrinsics, "
+        "focal, principal_point, distortion, pose; or names: alpha_u, k1, ...)",
+    )
+    rig.add_argument(
+        "--distortion",
+        type=_distortion,
+        default=("k1", "k2", "p1", "p2"),
+        metavar="LIST",
+        help="the distortion coefficients estimated (default k1,k2,p1,p2; or none)",
+    )
+    rig.add_argument(
+        "--reference",
+        default="0",
+        metavar="CAMERA",
+        help="the camera (index or name) whose frame is the world's (default 0), or 'target': "
+        "the target in the frame most cameras saw",
+    )
+    rig.add_argument(
+        "--huber", type=float, metavar="PX", help="Huber loss of this scale (pixels) for outliers"
+    )
+    rig.add_argument(
+        "--plot", metavar="PNG", help="a figure of the rig and its residuals (.png, .pdf, .svg)"
+    )
 
     detect = command(
         "detect",
@@ -262,11 +333,12 @@ def _check_usage(parser, args) -> None:
     into exist, the flags go together. `parser.error` exits with code 2."""
     inputs = {
         "calibrate": ["correspondences"],
+        "calibrate-rig": ["observations", "intrinsics"],
         "report": ["rig", "correspondences"],
         "triangulate": ["rig", "tracks"],
     }.get(args.command, [])
     for name in inputs:
-        if not pathlib.Path(getattr(args, name)).exists():
+        if getattr(args, name) is not None and not pathlib.Path(getattr(args, name)).exists():
             parser.error(f"no such file: {getattr(args, name)}")
     if args.command in ("detect", "calibrate-images"):
         missing = [p for p in args.images if not pathlib.Path(p).is_file()]
@@ -293,6 +365,8 @@ def _check_usage(parser, args) -> None:
         parser.error("noise levels must be non-negative")
     if args.command == "triangulate" and not args.min_angle >= 0:
         parser.error("--min-angle must be non-negative")
+    if args.command == "calibrate-rig" and args.huber is not None and not args.huber > 0:
+        parser.error("--huber must be positive")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -488,6 +562,154 @@ def _unique(names) -> list[str]:
         seen.add(candidate)
         out.append(candidate)
     return out
+
+
+# ---------------------------------------------------------------------------- calibrate-rig
+def _calibrate_rig(args) -> int:
+    import numpy as np
+
+    from . import io
+    from ._refine import GROUPS, Huber
+    from ._rig import calibrate_rig
+    from ._status import Status
+
+    say = _progress(args)
+    held = {p for name in args.fix for p in GROUPS.get(name, (name,))}
+    if args.intrinsics is None and held & {*GROUPS["intrinsics"], *GROUPS["pose"]}:
+        raise ValueError(
+            f"--fix {','.join(args.fix)} needs --intrinsics: the cameras whose values it holds."
+        )
+    if args.plot:
+        from . import plot
+
+        try:
+            plot.require_matplotlib()
+        except ImportError as error:
+            raise _Failed(str(error)) from None
+    obs = _load_observations(args.observations)
+    C, F, N = obs.mask.shape
+    say(
+        f"read {_count(C, 'camera')}, {_count(F, 'frame')}, {_count(N, 'target point')}, "
+        f"{_count(int(obs.mask.sum()), 'observation')} from {args.observations}"
+    )
+    cameras = None
+    if args.intrinsics is not None:
+        cameras = _starting_rig(args.intrinsics, obs.cameras)
+    if args.reference == "target":
+        reference = "target"
+    elif args.reference in obs.cameras:
+        reference = obs.cameras.index(args.reference)
+    elif re.fullmatch(r"\d+", args.reference):
+        reference = int(args.reference)
+    else:
+        raise ValueError(
+            f"--reference {args.reference!r} is neither a camera index (0 to {C - 1}), a camera "
+            "name nor 'target'."
+        )
+    say("calibrating the rig: closed form, then Levenberg-Marquardt (the first run compiles)")
+    result = calibrate_rig(
+        obs.target,
+        obs.pixels,
+        obs.mask,
+        cameras=cameras,
+        fix=args.fix,
+        distortion=args.distortion,
+        reference=reference,
+        loss=None if args.huber is None else Huber(args.huber),
+        verbose=not args.quiet,
+    )
+    status = np.asarray(result.status)
+    ok = status == Status.OK
+    print(result)
+    print("cameras: " + ", ".join(f"{c} = {name}" for c, name in enumerate(obs.cameras)))
+
+    def number(x):
+        return float(x) if np.isfinite(x) else None
+
+    meta = {
+        "observations": str(args.observations),
+        "intrinsics": None if args.intrinsics is None else str(args.intrinsics),
+        "fix": list(args.fix),
+        "distortion": list(args.distortion),
+        "reference": reference,
+        "loss": None if args.huber is None else {"huber": args.huber},
+        "rms": number(result.rms),
+        "rms_observed": number(result.rms_observed),
+        "iterations": int(result.iterations),
+        "converged": bool(result.converged),
+        "n_skipped": int(result.n_skipped),
+        "position_std": [[number(v) for v in row] for row in np.asarray(result.position_std)],
+        "rotation_std_deg": [[number(v) for v in row] for row in np.asarray(result.rotation_std)],
+    }
+    io.save_json(
+        args.out, result.cameras, names=obs.cameras, status=status, rms=result.camera_rms, meta=meta
+    )
+    print()
+    for i in np.flatnonzero(~ok):
+        print(f"{obs.cameras[i]}: {Status(int(status[i])).message}")
+    n_observed = int(np.asarray(result.observed).sum())
+    print(
+        f"all cameras: {_count(n_observed, 'observation')}, RMS "
+        f"{float(result.rms_observed):.4f} px ({int(np.asarray(result.used).sum())} used in the "
+        f"fit: RMS {float(result.rms):.4f} px)"
+    )
+    print(f"{int(ok.sum())} of {C} cameras calibrated; rig written to {args.out}")
+    if args.plot:
+        say("drawing the figure")
+        poses = result.target_poses
+        world = np.asarray(poses.apply(np.broadcast_to(obs.target, (F, N, 3))))  # (F, N, 3)
+        posed = np.all(np.isfinite(world), (1, 2))
+        mask = np.asarray(result.observed)[:, posed] & ok[:, None, None]
+        figure = plot.report_figure(
+            result.cameras,
+            world[posed].reshape(-1, 3),
+            obs.pixels[:, posed].reshape(C, -1, 2),
+            mask.reshape(C, -1),
+            names=obs.cameras,
+            title=f"{_count(C, 'camera')}, {_count(int(posed.sum()), 'frame')}, "
+            f"{_count(int(mask.sum()), 'observation')}, RMS "
+            f"{float(result.rms_observed):.3g} px",
+        )
+        plot.save_figure(figure, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0 if ok.all() else 1
+
+
+def _load_observations(path):
+    """Observations from an mvcalib observations CSV or caliscope's `xy.csv` (by its header)."""
+    from . import io
+
+    try:
+        with open(path, newline="") as f:
+            first = next((line for line in f if line.strip()), "")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: not a readable observations file ({error})") from None
+    header = {h.strip() for h in first.split(",")}
+    if {"sync_index", "img_loc_x"} <= header:
+        return io.load_caliscope(path)
+    return io.load_observations(path)
+
+
+def _starting_rig(path, names):
+    """The rig of `path` (JSON, .yml, COLMAP folder or caliscope's .toml) in the order of the
+    observations' camera `names`: matched by name if it has the same names, else in order."""
+    import jax
+    import numpy as np
+
+    from . import io
+
+    if pathlib.Path(path).suffix.lower() == ".toml":
+        cameras, theirs = io.load_caliscope_cameras(path)
+    else:
+        cameras, theirs = _load_rig(path)
+    if len(theirs) != len(names):
+        raise ValueError(
+            f"{path}: {_count(len(theirs), 'camera')}; the observations have {len(names)}."
+        )
+    if sorted(theirs) == sorted(names) and len(set(names)) == len(names):
+        order = np.array([theirs.index(n) for n in names])
+        cameras = jax.tree_util.tree_map(lambda a: a[order], cameras)
+    return cameras
 
 
 # ---------------------------------------------------------------------------- detect
@@ -748,6 +970,7 @@ def _demo(args) -> int:
 
 COMMANDS = {
     "calibrate": _calibrate,
+    "calibrate-rig": _calibrate_rig,
     "detect": _detect,
     "report": _report,
     "triangulate": _triangulate,

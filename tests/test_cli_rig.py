@@ -1,0 +1,187 @@
+"""`mvcalib calibrate-rig`: a rig from a target moved in front of it, through the command line
+(in-process, through `cli.main`): a synthetic rig, caliscope's real recording
+(../shared/data/SOURCE.md, section 6), the flags reaching `calibrate_rig`, and one-line
+failures."""
+
+import json
+import re
+
+import imageio.v3 as iio
+import jax
+import numpy as np
+import pytest
+from conftest import data_dir
+
+import mvcalib as mc
+from mvcalib import cli
+
+NAMES = ["cam a", "cam b", "cam c", "cam d"]
+
+
+@pytest.fixture
+def cache_off(monkeypatch):
+    monkeypatch.setenv("MVCALIB_COMPILATION_CACHE", "0")  # leave this process's JAX alone
+
+
+def _observations(n_frames):
+    rig = mc.synthetic.board_rig(jax.random.key(0), 4, n_frames, noise=0.3)
+    mask = np.asarray(rig.mask)
+    pixels = np.where(mask[..., None], np.asarray(rig.pixels), np.nan)
+    C, F, N = mask.shape
+    target = np.asarray(rig.target)
+    return rig, mc.io.Observations(target, pixels, mask, NAMES, np.arange(F), np.arange(N))
+
+
+def _main(*args) -> int:
+    try:
+        return cli.main([str(a) for a in args])
+    except SystemExit as exit:  # argparse's errors
+        return exit.code
+
+
+# ---------------------------------------------------------------------------- synthetic rig
+def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off):
+    rig, observations = _observations(40)
+    path = mc.io.save_observations(tmp_path / "obs.csv", observations)
+    out, figure = tmp_path / "rig.json", tmp_path / "rig.png"
+    assert _main("calibrate-rig", path, "--out", out, "--plot", figure) == 0
+    stdout, stderr = capsys.readouterr()
+    assert f"read 4 cameras, 40 frames, 108 target points, {observations.mask.sum()} " in stderr
+    assert "calibrate_rig: RMS" in stderr  # the library's stage timings, as progress
+    assert "4 of 4 cameras calibrated; rig written to" in stdout
+    assert "rig of 4 cameras, 40 frames" in stdout and "cameras: 0 = cam a, 1 = cam b" in stdout
+
+    cameras, names = mc.io.load_json(out)
+    assert names == NAMES and cameras.batch_shape == (4,)
+    document = json.loads(out.read_text())
+    assert [c["status"] for c in document["cameras"]] == [0, 0, 0, 0]
+    meta = document["meta"]
+    assert meta["reference"] == 0 and meta["fix"] == [] and meta["n_skipped"] == 0
+    assert 0.3 < meta["rms_observed"] < 0.5 and meta["converged"]  # 0.3 px noise in x and y
+    printed = re.search(r"all cameras: (\d+) observations, RMS ([\d.]+) px", stdout)
+    assert int(printed.group(1)) == observations.mask.sum()
+    assert abs(float(printed.group(2)) - meta["rms_observed"]) < 1e-4
+    # camera 0's frame is the world's: the other centres where the truth puts them there
+    truth = np.asarray(rig.cameras[0].to_camera(rig.cameras.center))
+    error = np.linalg.norm(np.asarray(cameras.center) - truth, axis=-1)
+    std = np.linalg.norm(meta["position_std"], axis=-1)
+    assert std[0] == 0 and np.all(error[1:] < 4 * std[1:]) and error.max() < 0.02  # metres
+    np.testing.assert_allclose(cameras.alpha_u, rig.cameras.alpha_u, rtol=0.01)
+
+    picture = iio.imread(figure)
+    assert picture.shape[1] > 1000 and picture[..., :3].std() > 10  # something drawn
+    assert f"figure written to {figure}" in stdout
+
+
+# ---------------------------------------------------------------------------- caliscope
+def test_caliscope_recording_with_its_intrinsics_held_beats_its_own_error(
+    tmp_path, capsys, cache_off
+):
+    root = data_dir("caliscope_4cam")
+    out = tmp_path / "rig.json"
+    toml = root / "camera_array.toml"
+    args = ["--intrinsics", toml, "--fix", "intrinsics,distortion", "--reference", "1"]
+    assert _main("calibrate-rig", root / "xy.csv", "--out", out, *args, "--quiet") == 0
+    stdout, stderr = capsys.readouterr()
+    assert stderr == ""  # --quiet: no progress, nor the library's stage timings
+    printed = re.search(r"all cameras: 1725 observations, RMS ([\d.]+) px", stdout)
+    assert float(printed.group(1)) < 0.94  # caliscope's own rig: 0.94 px (SOURCE.md)
+    meta = json.loads(out.read_text())["meta"]
+    assert meta["rms_observed"] < 0.94 and meta["fix"] == ["intrinsics", "distortion"]
+    cameras, names = mc.io.load_json(out)
+    theirs, their_names = mc.io.load_caliscope_cameras(toml)
+    assert names == their_names == ["cam_0", "cam_1", "cam_2", "cam_3"]
+    np.testing.assert_array_equal(cameras.K, theirs.K)  # held
+    np.testing.assert_array_equal(cameras.dist, theirs.dist)
+    np.testing.assert_allclose(cameras.R[1], np.eye(3), atol=1e-12)  # camera 1 is the world
+    np.testing.assert_allclose(cameras.t[1], 0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- flags
+class _Spied(ValueError):
+    pass
+
+
+def test_flags_reach_calibrate_rig(tmp_path, capsys, cache_off, monkeypatch):
+    seen = []
+
+    def spy(target, pixels, mask, **kwargs):  # records the request, stops before any work
+        seen.append((pixels.shape, kwargs))
+        raise _Spied("spied")
+
+    monkeypatch.setattr("mvcalib._rig.calibrate_rig", spy)
+    rig, observations = _observations(3)
+    path = mc.io.save_observations(tmp_path / "obs.csv", observations)
+    reversed_ = [3, 2, 1, 0]  # a starting rig with the cameras in another order: by name
+    start = jax.tree_util.tree_map(lambda a: a[np.array(reversed_)], rig.cameras)
+    mc.io.save_json(tmp_path / "start.json", start, names=[NAMES[i] for i in reversed_])
+    base = ["calibrate-rig", path, "--out", tmp_path / "r.json", "--quiet"]
+    assert _main(*base) == 2
+    assert _main(*base, "--huber", "2", "--reference", "target", "--distortion", "k1,k2") == 2
+    assert _main(*base, "--reference", "cam c", "--intrinsics", tmp_path / "start.json",
+                 "--fix", "intrinsics, k3") == 2  # fmt: skip
+    assert capsys.readouterr().err.count("mvcalib: error: spied") == 3
+    (shape, plain), (_, robust), (_, started) = seen
+    assert shape == (4, 3, 108, 2)
+    assert plain == dict(cameras=None, fix=(), distortion=("k1", "k2", "p1", "p2"),
+                         reference=0, loss=None, verbose=False)  # fmt: skip
+    assert robust["loss"] == mc.Huber(2.0) and robust["reference"] == "target"
+    assert robust["distortion"] == ("k1", "k2")
+    assert started["reference"] == 2 and started["fix"] == ("intrinsics", "k3")
+    np.testing.assert_array_equal(started["cameras"].K, rig.cameras.K)  # back in file order
+
+
+# ---------------------------------------------------------------------------- failures
+@pytest.fixture
+def files(tmp_path, monkeypatch, cache_off):
+    """A small observations file of 4 cameras, rigs of 4 and of 2 cameras, a caliscope-style
+    camera_array.toml of 2 cameras, and a correspondences file (not observations)."""
+    monkeypatch.chdir(tmp_path)
+    rig, observations = _observations(3)
+    mc.io.save_observations("obs.csv", observations)
+    mc.io.save_json("four.json", rig.cameras, names=NAMES)
+    mc.io.save_json("two.json", rig.cameras[:2], names=NAMES[:2])
+    toml = "".join(
+        f"[cameras.{c}]\nmatrix = [[900.0, 0.0, 640.0], [0.0, 900.0, 360.0], [0.0, 0.0, 1.0]]\n"
+        "rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n"
+        "translation = [0.0, 0.0, 1.5]\n"
+        for c in range(2)
+    )
+    (tmp_path / "two.toml").write_text(toml)
+    world = mc.targets.box_corner().points
+    mc.io.save_correspondences("corr.csv", world, np.zeros((1, len(world), 2)))
+    return tmp_path
+
+
+RIG = ["calibrate-rig", "obs.csv", "--out", "r.json"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["calibrate-rig", "nowhere.csv", "--out", "r.json"], "no such file: nowhere.csv"),
+        ([*RIG, "--intrinsics", "none.toml"], "no such file: none.toml"),
+        (["calibrate-rig", "obs.csv", "--out", "no/r.json"], "the folder of --out does not"),
+        ([*RIG, "--plot", "no/f.png"], "the folder of --plot does not"),
+        ([*RIG, "--fix", "intrinsics"], "--fix intrinsics needs --intrinsics"),
+        ([*RIG, "--fix", "pose"], "--fix pose needs --intrinsics"),
+        ([*RIG, "--intrinsics", "two.json"], "two.json: 2 cameras; the observations have 4."),
+        ([*RIG, "--intrinsics", "two.toml", "--fix", "intrinsics"],
+         "two.toml: 2 cameras; the observations have 4."),
+        ([*RIG, "--intrinsics", "obs.csv"], "not a readable JSON rig file"),
+        ([*RIG, "--intrinsics", "four.json", "--fix", "focus"], "unknown parameter 'focus'"),
+        ([*RIG, "--reference", "7"], "`reference` 7 is not a camera of the 4"),
+        ([*RIG, "--reference", "left"], "--reference 'left' is neither a camera index"),
+        ([*RIG, "--huber", "0"], "--huber must be positive"),
+        ([*RIG, "--distortion", "k9"], "'k9' is not one of"),
+        (["calibrate-rig", "corr.csv", "--out", "r.json"], "corr.csv:1: "),
+        (["calibrate-rig", "four.json", "--out", "r.json"], "four.json:1: "),
+    ],
+)  # fmt: skip
+def test_failures_are_one_line_and_exit_code_2(files, capsys, args, message):
+    returned = _main(*args, "--quiet")
+    err = capsys.readouterr().err
+    assert returned == 2, err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err and not (files / "r.json").exists()
+    assert not list(files.glob(".*.tmp"))
