@@ -76,7 +76,9 @@ class RigCalibration(eqx.Module):
       + t`); NaN for frames no calibrated camera saw with enough points.
     - `status`: `(C,)` per camera (`mvcalib.Status`): OK; TOO_FEW_POINTS (no frame with enough
       points); DEGENERATE (its frames do not determine its intrinsics); NOT_CONNECTED (no chain
-      of shared frames links it to the reference camera).
+      of shared frames links it to the reference camera); POOR_FIT (its reprojection RMS
+      exceeds `max_relative_rms` of its pixels' spread: the solve failed, or its detections are
+      wrong).
     - `initial`: `(C,)` the closed-form cameras that seeded the refinement.
     - `rms`: reprojection RMS over every observation used (pixels); `camera_rms` `(C,)`,
       `frame_rms` `(F,)` the same per camera and per frame.
@@ -784,6 +786,7 @@ def _calibrate_rig(
     cameras,
     reference,
     rcond,
+    max_relative_rms,
     *,
     planar,
     given,
@@ -844,6 +847,13 @@ def _calibrate_rig(
     frame_rms = jnp.sqrt(jnp.sum(square, (0, 2)) / jnp.sum(used, (0, 2)))
     threshold = jnp.inf if loss is None else 3.0 * loss.scale
     inliers = used & (jnp.sqrt(square) <= threshold)
+    # a camera whose fit is out of all proportion to its image of the target (calibrate's check)
+    C, F, N = used.shape
+    poor = _dlt.poor_fit(
+        camera_rms, pixels.reshape(C, F * N, 2), used.reshape(C, F * N), max_relative_rms, True
+    )
+    status = jnp.where(ok & poor, Status.POOR_FIT, status).astype(jnp.int32)
+    ok = status == Status.OK
     nan_c = lambda x: jnp.where(ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)  # noqa: E731
     nan_f = lambda x: jnp.where(frame_ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)  # noqa: E731
     return dict(
@@ -881,6 +891,7 @@ def calibrate_rig(
     origin_frame: int | None = None,
     loss: Huber | Cauchy | None = None,
     rcond: float | None = None,
+    max_relative_rms: float = _dlt.DEFAULT_MAX_RELATIVE_RMS,
     max_steps: int = 100,
     verbose: bool = False,
 ) -> RigCalibration:
@@ -915,12 +926,16 @@ def calibrate_rig(
     - `loss`: `mc.Huber(scale)` or `mc.Cauchy(scale)` (pixels) for wrong detections.
     - `rcond`: the closed form's threshold for a degenerate homography or DLT (default
       sqrt(machine epsilon)); `max_steps` of Levenberg–Marquardt.
+    - `max_relative_rms`: a camera whose reprojection RMS exceeds this fraction of its pixels'
+      spread is `Status.POOR_FIT` and NaN, as in `mvcalib.calibrate` (default 0.05).
     - `verbose`: print the stages and their times to stderr.
 
     Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
     which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
     is neither planar nor 3-D. Cameras that cannot be calibrated get a status and NaN; the
-    others are calibrated as if they were absent.
+    others are calibrated as if they were absent (except a POOR_FIT camera, flagged after the
+    solve it took part in: its free parameters absorb most of its own residuals, and a robust
+    `loss` keeps wrong detections from pulling the other cameras).
 
     **Example:**
 
@@ -1016,6 +1031,7 @@ def calibrate_rig(
         cameras,
         solve_reference,
         rcond,
+        _dlt.check_relative_rms(max_relative_rms),
         planar=planar,
         given=cameras is not None,
         free=free,
