@@ -128,8 +128,13 @@ def broken_rig(rig):
 
 
 def spread(pixels):
-    """The median distance of a camera's pixels from their (coordinate-wise) median."""
-    return np.median(np.linalg.norm(pixels - np.median(pixels, axis=0), axis=-1))
+    """The median distance of a camera's pixels from their centre: the geometric median by four
+    Weiszfeld steps from the mean (rotation-invariant, unlike the coordinate-wise median)."""
+    centre = pixels.mean(0)
+    for _ in range(4):
+        weights = 1.0 / np.linalg.norm(pixels - centre, axis=-1)
+        centre = weights @ pixels / weights.sum()
+    return np.median(np.linalg.norm(pixels - centre, axis=-1))
 
 
 CALIBRATE = jax.jit(mc.calibrate, static_argnames="max_relative_rms")  # nothing raises in jit
