@@ -810,8 +810,8 @@ def dlt(
     - `mask`: visibility `(..., N)`, boolean. Hidden points have no influence at all: their values,
       even NaN, never reach the result or its gradient.
     - `max_relative_rms`: the largest reprojection RMS of an answer, as a fraction of the spread
-      of its pixels (median distance from their median), that counts as a fit; default 0.05.
-      `inf` turns the check off.
+      of its pixels (median distance from their geometric median), that counts as a fit; default
+      0.05. `inf` turns the check off.
 
     **Returns:** `P` of shape `(..., 3, 4)`. A camera whose P is not determined (fewer than 6
     visible points, coplanar or collinear points, NaN in traced input, points on both sides of the
