@@ -160,6 +160,18 @@ def load_json(path) -> tuple[Camera, list[str]]:
     return Camera(**stacked), names
 
 
+def _read_toml(path: pathlib.Path) -> dict:
+    """A TOML calibration file's contents; `ValueError` naming the file if it cannot be read."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
+    try:
+        return tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
+
+
 def load_aniposelib(path) -> tuple[Camera, list[str]]:
     """Load an aniposelib / anipose calibration file (TOML): `(cameras, names)`.
 
@@ -167,17 +179,10 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
     the file's order of `cam_0, cam_1, ...`. Needs Python >= 3.11 (`tomllib`).
     """
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
     from ._rotation import rodrigues
 
     path = pathlib.Path(path)
-    try:
-        document = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
-        raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
+    document = _read_toml(path)
     keys = sorted((k for k in document if re.fullmatch(r"cam_\d+", k)), key=lambda k: int(k[4:]))
     if not keys:
         raise ValueError(f"{path}: no [cam_N] tables.")
@@ -1196,17 +1201,10 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
 
     ```
     """
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
     from ._rotation import rodrigues
 
     path = pathlib.Path(camera_array_toml)
-    try:
-        document = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
-        raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
+    document = _read_toml(path)
     tables = document.get("cameras")
     keys = [k for k in tables if re.fullmatch(r"\d+", k)] if isinstance(tables, dict) else []
     if not keys:
