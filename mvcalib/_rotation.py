@@ -107,6 +107,8 @@ def exp_and_left_jacobian(w, R0):
     `a = sin(t) / t`, `b = (1 - cos t) / t^2 = (sin(t / 2) / (t / 2))^2 / 2` (no cancellation)
     and `c = (t - sin t) / t^3`, its Taylor series below t = 0.01 (where the quotient would
     lose up to 7e-12 of its value to cancellation)."""
+    w = [w[i] for i in range(3)]  # (each entry indexed once: tracing costs per operation)
+    R0 = [[R0[i, j] for j in range(3)] for i in range(3)]
     t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     safe2 = jnp.where(t2 < 1e-12, 1.0, t2)
     t = jnp.sqrt(safe2)
@@ -114,10 +116,18 @@ def exp_and_left_jacobian(w, R0):
     a = jnp.where(t2 < 1e-12, 1.0 - t2 / 6.0, sine_half * jnp.cos(0.5 * t))
     b = jnp.where(t2 < 1e-12, 0.5 - t2 / 24.0, 0.5 * sine_half * sine_half)
     c = jnp.where(t2 < 1e-4, 1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 / 5040.0), (1.0 - a) / safe2)
-    hat = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
-    hat2 = [[w[i] * w[j] - (t2 if i == j else 0.0) for j in range(3)] for i in range(3)]
-    eye = [[1.0 if i == j else 0.0 for j in range(3)] for i in range(3)]
-    E = [[eye[i][j] + a * hat[i][j] + b * hat2[i][j] for j in range(3)] for i in range(3)]
-    R = [[sum(E[i][k] * R0[k, j] for k in range(3)) for j in range(3)] for i in range(3)]
-    J = [[eye[i][j] + b * hat[i][j] + c * hat2[i][j] for j in range(3)] for i in range(3)]
+    # [w]x (zero diagonal) and [w]x^2 = w w^T - t2 I, then I + x [w]x + y [w]x^2 entry by entry
+    hat = {(0, 1): -w[2], (0, 2): w[1], (1, 0): w[2], (1, 2): -w[0], (2, 0): -w[1], (2, 1): w[0]}
+    hat2 = [[w[i] * w[j] - t2 if i == j else w[i] * w[j] for j in range(3)] for i in range(3)]
+
+    def series(x, y):
+        return [
+            [1.0 + y * hat2[i][j] if i == j else x * hat[i, j] + y * hat2[i][j] for j in range(3)]
+            for i in range(3)
+        ]
+
+    E = series(a, b)
+    R = [[E[i][0] * R0[0][j] + E[i][1] * R0[1][j] + E[i][2] * R0[2][j] for j in range(3)]
+         for i in range(3)]  # fmt: skip
+    J = series(b, c)
     return R, J
