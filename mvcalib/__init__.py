@@ -23,7 +23,7 @@ import typing
 __version__ = "0.1.0"
 
 # Public submodules, and the public names of the private modules, by module.
-_SUBMODULES = ("io", "synthetic", "targets")
+_SUBMODULES = ("io", "plot", "synthetic", "targets")  # plot imports matplotlib only to draw
 _EXPORTS = {
     "_bundle": ("BundleAdjustment", "RigRefinement", "bundle_adjust", "refine_rig"),
     "_cache": ("enable_compilation_cache",),
@@ -67,6 +67,7 @@ def __dir__() -> list[str]:
 
 if typing.TYPE_CHECKING:
     from . import io as io
+    from . import plot as plot
     from . import synthetic as synthetic
     from . import targets as targets
     from ._bundle import BundleAdjustment as BundleAdjustment
