@@ -30,6 +30,7 @@ from ._refine import (
     _pack,
     _robust_weights,
     _scales,
+    _skew_model,
     _unpack,
 )
 from ._registration import RigidTransform
@@ -204,6 +205,7 @@ def refine_rig(
             )
     transform = RigidTransform.identity(dtype) if transform is None else transform
     free = _free_parameters(distortion, fix, skew)
+    cameras = _skew_model(cameras, skew, fix)
     shared = bool(shared_intrinsics)
     cam_free = tuple(i for i in free if not (shared and i in _INTRINSICS))
     shared_free = tuple(i for i in free if shared and i in _INTRINSICS)

@@ -172,13 +172,6 @@ def _point_arrays(result: Calibration) -> tuple:
     return report + (refinement.inliers, refinement.report.residuals, refinement.report.mask)
 
 
-def _seed(result: Calibration, options: dict, xp=jnp) -> Camera:
-    """The closed-form cameras as `refine`'s seed: the skew zeroed unless it is refined."""
-    if options.get("skew", False):
-        return result.cameras
-    return eqx.tree_at(lambda c: c.skew, result.cameras, xp.zeros_like(result.cameras.skew))
-
-
 def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> Calibration:
     """`result` refined (inside the caller's trace): the closed form seeds `refine`, and the
     fit's check is made on the refined cameras."""
@@ -186,7 +179,7 @@ def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> C
 
     # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
     # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
-    seed = _seed(result, options)
+    seed = result.cameras  # (`refine` zeroes its skew unless it is estimated)
     if seed.batch_shape:
         refined = _refine.refine(seed, world, pixels, mask, **options)
     else:
@@ -211,7 +204,7 @@ def _refined_bucket(
         x[n_cameras:] = np.nan
         return x
 
-    seed = jax.tree_util.tree_map(padding_nan, _seed(result, options, np))
+    seed = jax.tree_util.tree_map(padding_nan, result.cameras)
     refined = _refine.refine(seed, world, pixels, mask, **options)  # (already a bucket)
     return _checked(result, refined, world, pixels, mask, max_relative_rms, quick=quick)
 

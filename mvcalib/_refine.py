@@ -652,6 +652,16 @@ def _free_parameters(distortion, fix, skew) -> tuple[int, ...]:
     return tuple(i for i, name in enumerate(PARAMETERS) if name not in fixed)
 
 
+def _skew_model(cameras: Camera, skew: bool, fix) -> Camera:
+    """The seed of a zero-skew model (`skew=False`, the default: OpenCV's model) has zero skew:
+    a seed with another value (the DLT's, noisy) has it set to zero, not held, unless `fix` names
+    `"skew"` (then the seed's value is held). With `skew=True` it is estimated from the seed's."""
+    held = "skew" in ((fix,) if isinstance(fix, str) else tuple(fix))
+    if skew or held:
+        return cameras
+    return eqx.tree_at(lambda c: c.skew, cameras, jnp.zeros_like(cameras.skew))
+
+
 def default_solver(dtype) -> optx.AbstractLeastSquaresSolver:
     """`SecantLM` stopping at steps of 1e-5 standard errors (float64); optimistix's
     Levenberg–Marquardt stopping at steps of 1e-5 in the parameters' natural units (float32).
@@ -698,8 +708,9 @@ def refine(
       seed's values (zeros for a DLT seed). `()` or `"none"`-like empty means a pinhole model.
     - `fix`: parameters held at the seed's values: names from `PARAMETERS`, or the groups
       `"focal"`, `"principal_point"`, `"intrinsics"`, `"rotation"`, `"translation"`, `"pose"`.
-    - `skew`: estimate the skew (default: held at the seed's value, which is zero for the usual
-      zero-skew model that OpenCV uses; `calibrate(refine=True)` seeds it with zero).
+    - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew
+      (e.g. the DLT's small, noisy one) is set to zero. To hold a seed's non-zero skew instead,
+      name it in `fix`.
     - `loss`: `None` for least squares, or `Huber(scale)` / `Cauchy(scale)` with `scale` in
       pixels, to bound the influence of outliers.
     - `solver`: any optimistix least-squares solver; default `default_solver(dtype)`:
@@ -728,6 +739,7 @@ def refine(
     bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
     free = _free_parameters(distortion, fix, skew)
+    cameras = _skew_model(cameras, skew, fix)
     if _validate.is_concrete(mask) and not cameras.batch_shape:
         n_min = int(np.sum(np.asarray(mask)))
         if 2 * n_min <= len(free):

@@ -52,6 +52,7 @@ from ._refine import (
     _pixel_columns,
     _robust_rows,
     _robust_weights,
+    _skew_model,
     _unpack,
 )
 from ._registration import RigidTransform
@@ -1045,7 +1046,9 @@ def calibrate_rig(
                 f"`cameras` must be a rig of {C} cameras, one per row of `pixels`; got batch "
                 f"shape {cameras.batch_shape}."
             )
-        cameras = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), cameras)
+        cameras = _skew_model(
+            jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), cameras), skew, fix
+        )
     # (fixed parameters not given hold the closed form's values: zero distortion, zero skew)
     if isinstance(reference, str):
         if reference != "target":

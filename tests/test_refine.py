@@ -118,6 +118,36 @@ def test_agrees_with_opencv_calibrate_camera_and_scipy(rig32):
             assert abs(value - cv_value) < 0.05 * std[k], (k, value, cv_value, std[k])
 
 
+def test_the_default_road_is_opencvs_zero_skew_model():
+    """`refine` seeded straight from the DLT (whose skew is small and noisy) fits the zero-skew
+    model, as `cv2.calibrateCamera` does, on every camera; `skew=True` estimates the skew and
+    `fix=("skew",)` holds the seed's."""
+    cams, world, pixels, mask = distorted_rig(3, 8)
+    world = np.asarray(world).astype(np.float32).astype(np.float64)  # what OpenCV sees
+    pixels = np.asarray(pixels).astype(np.float32).astype(np.float64)
+    mask = np.asarray(mask)
+    seed = mc.Camera.from_projection(mc.dlt(world, pixels, mask))
+    assert np.all(np.abs(np.asarray(seed.skew)) > 1e-6)  # the DLT's own skew is not zero
+    out = mc.refine(seed, world, pixels, mask)
+    assert bool(out.ok.all()) and np.all(np.asarray(out.cameras.skew) == 0)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    for i in range(8):
+        W, px = world[mask[i]], pixels[i][mask[i]]
+        K0 = np.array(zero_skew(seed[i]).K)
+        rms_cv = cv2.calibrateCamera(
+            [W.astype(np.float32)], [px.astype(np.float32)], IMAGE, K0, np.zeros(5),
+            flags=flags, criteria=crit,
+        )[0]  # fmt: skip
+        assert abs(float(out.rms_after[i]) / rms_cv - 1) < 1e-6, (i, out.rms_after[i], rms_cv)
+    with_skew = mc.refine(seed, world, pixels, mask, skew=True)
+    assert "skew" in with_skew.parameter_names and "skew" not in out.parameter_names
+    assert np.all(np.asarray(with_skew.cameras.skew) != 0)
+    assert np.all(np.asarray(with_skew.rms_after) <= np.asarray(out.rms_after) + 1e-9)
+    held = mc.refine(seed, world, pixels, mask, fix=("skew",))
+    np.testing.assert_array_equal(held.cameras.skew, seed.skew)
+
+
 def test_true_focal_within_two_standard_errors_in_90_to_99_percent():
     cams, world, pixels, mask = distorted_rig(7, 200)
     seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
