@@ -37,6 +37,8 @@ class Detection:
     - `bbox`: `(K, 4)` int `(min_row, min_col, max_row, max_col)` of each blob, half-open.
     - `stages`: with `return_stages=True`, the intermediate images of the paper's Fig. 3 as a
       dict (`'binary'`, `'inverted'`, `'background'`, `'subtracted'`, `'detected'`), else None.
+    - `image_shape`: `(height, width)` of the image searched (the principal point's default
+      guess in `mvcalib.match_dots` is its centre).
     """
 
     centroids: np.ndarray
@@ -47,6 +49,7 @@ class Detection:
     major: np.ndarray
     minor: np.ndarray
     stages: dict | None = None
+    image_shape: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.centroids)
@@ -342,6 +345,7 @@ def detect_dots(
         major=np.asarray([r.axis_major_length for r in kept], dtype=np.float64),
         minor=np.asarray([r.axis_minor_length for r in kept], dtype=np.float64),
         stages=stages,
+        image_shape=(int(height), int(width)),
     )
 
 

@@ -28,7 +28,7 @@ __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
     "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
     "load_correspondences", "Observations", "save_observations", "load_observations",
-    "load_caliscope", "load_caliscope_cameras",
+    "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -1239,3 +1239,43 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
         fields.append((K, R, t, np.pad(dist, (0, 5 - len(dist)))))
     K, R, t, dist = (np.stack(f) for f in zip(*fields))
     return Camera.from_matrices(K, R, t, dist), [f"cam_{k}" for k in keys]
+
+
+def load_openptv_clicks(man_ori_par, man_ori_dat) -> tuple[np.ndarray, np.ndarray]:
+    """OpenPTV's clicked seeds: `man_ori.par` (the target ids of the dots clicked, one per
+    line, four per camera: OpenPTV's manual orientation) and `man_ori.dat` (their pixels `x y`, one
+    per line, cameras in order), as `(dot_ids (C, k), pixels (C, k, 2))` for
+    `mvcalib.match_dots`. The pixels are moved to mvcalib's convention (origin at the centre of
+    the top-left pixel; OpenPTV's is its corner: -0.5 px in x and y).
+
+    **Example:**
+
+    ```python
+    >>> import pathlib, tempfile, mvcalib as mc
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "man_ori.par").write_text("2\\n3\\n71\\n73\\n")
+    >>> _ = (d / "man_ori.dat").write_text("1009 608\\n979 335\\n246 620\\n235 344\\n")
+    >>> ids, pixels = mc.io.load_openptv_clicks(d / "man_ori.par", d / "man_ori.dat")
+    >>> ids.tolist(), pixels[0, 0].tolist()
+    ([[2, 3, 71, 73]], [1008.5, 607.5])
+
+    ```
+    """
+    par, dat = pathlib.Path(man_ori_par), pathlib.Path(man_ori_dat)
+    try:
+        ids = np.loadtxt(par, ndmin=1)
+        pixels = np.loadtxt(dat, ndmin=2)
+    except ValueError as error:
+        raise ValueError(f"cannot read OpenPTV clicks {par} / {dat}: {error}") from None
+    if ids.ndim != 1 or len(ids) == 0 or not np.all(ids == np.round(ids)):
+        raise ValueError(f"{par}: expected one integer dot id per line.")
+    if pixels.shape != (len(ids), 2) or not np.all(np.isfinite(pixels)):
+        raise ValueError(
+            f"{dat}: expected {len(ids)} lines of `x y` (one per id in {par.name}); got "
+            f"{pixels.shape[0]} lines of {pixels.shape[1] if pixels.ndim == 2 else '?'} numbers."
+        )
+    per_camera = 4  # OpenPTV's manual orientation: four points per camera
+    if len(ids) % per_camera:
+        raise ValueError(f"{par}: {len(ids)} ids is not {per_camera} per camera.")
+    C = len(ids) // per_camera
+    return ids.astype(int).reshape(C, per_camera), pixels.reshape(C, per_camera, 2) - 0.5

@@ -22,6 +22,8 @@ class Target:
       `global_points`.
     - `fiducials`: indices of the dots printed larger than the rest. Their sizes are what lets
       `mvcalib.label_dots` tell which detected blob is which dot without a human (see there).
+    - `ids`: `(M,)` int, each dot's id as the user knows it (a target file's first column;
+      clicked seeds name dots by it, `mvcalib.match_dots`); default `0 .. M-1`.
     """
 
     name: str
@@ -31,6 +33,37 @@ class Target:
     local_to_global: np.ndarray
     units: str = "mm"
     fiducials: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
+    ids: np.ndarray | None = None
+
+    def __post_init__(self):
+        ids = np.arange(len(self.points)) if self.ids is None else np.asarray(self.ids)
+        if ids.shape != (len(self.points),) or not np.issubdtype(ids.dtype, np.integer):
+            raise ValueError(f"`ids` must be {len(self.points)} integers, one per dot.")
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError("`ids` must be distinct: two dots share an id.")
+        object.__setattr__(self, "ids", ids)
+
+    def index(self, ids) -> np.ndarray:
+        """The positions in `points` of the dots with these `ids`; ValueError for an unknown id.
+
+        **Example:**
+
+        ```python
+        >>> import numpy as np, mvcalib as mc
+        >>> t = mc.targets.Target("t", np.eye(3), 1.0, np.arange(3), np.eye(4), ids=[7, 3, 5])
+        >>> t.index([5, 7]).tolist()
+        [2, 0]
+
+        ```
+        """
+        ids = np.asarray(ids).reshape(-1)
+        order = np.argsort(self.ids)
+        where = np.searchsorted(self.ids, ids, sorter=order)
+        where = order[np.minimum(where, len(order) - 1)]
+        unknown = ids[self.ids[where] != ids]
+        if len(unknown):
+            raise ValueError(f"no dot of target {self.name!r} has the id {int(unknown[0])}.")
+        return where
 
     @property
     def radii(self) -> np.ndarray:
@@ -49,6 +82,64 @@ class Target:
 
     def __len__(self) -> int:
         return len(self.points)
+
+
+def from_file(path, *, dot_radius: float = float("nan"), units: str = "mm") -> Target:
+    r"""A target from a text file: one dot per line, `id x y z` (whitespace, as OpenPTV's
+    `target_on_a_side.txt`), or CSV with a header naming `id,x,y,z` (any order, other columns
+    ignored). The file's ids are kept as `target.ids`; `global_ids` are all dots and the placement
+    is the identity (the file's frame is the world's).
+
+    **Example:**
+
+    ```python
+    >>> import pathlib, tempfile, mvcalib as mc
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "target.txt"
+    >>> _ = path.write_text("1 -40 -25 8\n2 -40 0 -8\n5 -35 -15 0\n")
+    >>> target = mc.targets.from_file(path)
+    >>> target.ids.tolist(), target.points[1].tolist()
+    ([1, 2, 5], [-40.0, 0.0, -8.0])
+
+    ```
+    """
+    import pathlib
+
+    path = pathlib.Path(path)
+    text = path.read_text()
+    if not text.strip():
+        raise ValueError(f"target file {path} is empty.")
+    first = text.lstrip().split("\n", 1)[0]
+    delimiter = "," if "," in first else None
+    try:
+        try:  # a first line of numbers is data; anything else is a header
+            [float(x) for x in first.split(delimiter)]
+            header = None
+        except ValueError:
+            header = [n.strip().lower() for n in first.split(delimiter)]
+        rows = np.loadtxt(path, delimiter=delimiter, skiprows=int(header is not None), ndmin=2)
+        if header is not None:
+            missing = [n for n in ("id", "x", "y", "z") if n not in header]
+            if missing:
+                raise ValueError(f"its header has no column {missing[0]!r} (it needs id, x, y, z)")
+            rows = rows[:, [header.index(n) for n in ("id", "x", "y", "z")]]
+    except ValueError as error:
+        raise ValueError(f"cannot read target file {path}: {error}") from None
+    if rows.ndim != 2 or rows.shape[1] < 4 or len(rows) == 0:
+        raise ValueError(f"target file {path}: expected lines of `id x y z`; got {rows.shape}.")
+    ids = rows[:, 0]
+    if not np.all(ids == np.round(ids)):
+        raise ValueError(f"target file {path}: the first column (the dot ids) must be integers.")
+    if not np.all(np.isfinite(rows[:, 1:4])):
+        raise ValueError(f"target file {path}: a coordinate is not a finite number.")
+    return Target(
+        name=path.stem,
+        points=rows[:, 1:4].astype(float),
+        dot_radius=dot_radius,
+        global_ids=np.arange(len(rows)),
+        local_to_global=np.eye(4),
+        units=units,
+        ids=ids.astype(int),
+    )
 
 
 def box_corner_grid(n: int = 6, size: float = 200.0) -> Target:

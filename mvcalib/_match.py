@@ -1,0 +1,365 @@
+"""Seeded labelling: which detected blob is which dot of any target, from a rough start.
+
+`label_dots` needs a target with enlarged fiducial dots. Every other target (a file of dot
+coordinates, an OpenPTV or MyPTV target, a printed grid) is labelled from a *seed*: a rough
+camera, or a few dots whose pixels a person clicked. From the seed,
+
+1. **A first camera.** Six or more clicked dots, not coplanar: the DLT of the clicks. Four or
+   five (or coplanar ones): their pose for a focal-length guess in pixels (the principal point
+   at the image centre), from the homography of the clicks' best-fitting plane and then
+   Levenberg–Marquardt on all the clicks (`mvcalib.refine`, intrinsics held).
+2. **Match.** The camera projects every dot; a dot takes the blob nearest its prediction when
+   that blob is nearest to no other prediction (mutually nearest), lies within the *gate*, and
+   no second blob is nearly as near (an ambiguous match is dropped, never guessed).
+3. **Calibrate again** on all matched dots (the DLT when they are six or more and not coplanar,
+   else the pose with the focal guess), shrink the gate to a few times the fit's RMS, and
+   repeat until the matches no longer change.
+
+The labelling is accepted only if enough dots were matched and they fit one camera well;
+otherwise the view is flagged (`Labels.ok` False, with the reason), never labelled wrongly in
+silence.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _dlt, _label
+from ._camera import Camera
+from ._detect import Detection
+from ._label import Labels
+from .targets import Target
+
+__all__ = ["match_dots"]
+
+# The first gate, as a fraction of the median distance between neighbouring predicted dots: a
+# blob farther than that from a dot's prediction would be nearer its neighbour's.
+_FIRST_GATE = 0.4
+# Later gates: this many times the last fit's RMS (pixels), no less than `_MIN_GATE`.
+_GATE_RMS = 5.0
+_MIN_GATE = 2.0
+# A match is ambiguous when a second blob is within this factor of the nearest's distance.
+_AMBIGUITY = 2.0
+
+
+def _coplanar(points: np.ndarray, tolerance: float = 0.01) -> bool:
+    """Whether points lie within `tolerance` of their spread from one plane (or a line)."""
+    if len(points) < 4:
+        return True
+    s = np.linalg.svd(points - points.mean(0), compute_uv=False)
+    return bool(s[2] <= tolerance * s[0])
+
+
+def _mutual(predicted: np.ndarray, blobs: np.ndarray, gate: float) -> np.ndarray:
+    """For each predicted dot, the blob it is matched to (mutually nearest, within `gate`, not
+    ambiguous), or -1."""
+    index = np.full(len(predicted), -1)
+    if len(blobs) == 0:
+        return index
+    d = np.linalg.norm(predicted[:, None] - blobs[None], axis=-1)
+    d = np.where(np.isfinite(d), d, np.inf)
+    nearest = np.argmin(d, axis=1)
+    first = d[np.arange(len(d)), nearest]
+    second = np.partition(d, 1, axis=1)[:, 1] if len(blobs) > 1 else np.full(len(d), np.inf)
+    back = np.argmin(d, axis=0)  # each blob's nearest prediction
+    ok = (first < gate) & (back[nearest] == np.arange(len(d))) & (second > _AMBIGUITY * first)
+    index[ok] = nearest[ok]
+    return index
+
+
+def _intrinsics(focal, principal_point, detection: Detection) -> np.ndarray | None:
+    """The guessed `K`, or None without a focal length."""
+    if focal is None:
+        return None
+    if principal_point is None:
+        if detection.image_shape is None:
+            raise ValueError(
+                "a focal-length guess needs the principal point: pass `principal_point=(x, y)` "
+                "(the detection does not record its image's size)."
+            )
+        height, width = detection.image_shape
+        principal_point = ((width - 1) / 2, (height - 1) / 2)
+    focal = float(focal)
+    if not np.isfinite(focal) or focal <= 0:
+        raise ValueError(f"`focal` is a focal length in pixels, > 0; got {focal}.")
+    cx, cy = (float(c) for c in principal_point)
+    return np.array([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
+
+
+def _dlt_any_fit(world, pixels, found) -> np.ndarray:
+    """The DLT `P (3, 4)` of the matched dots, however poorly they fit (the caller trims wrong
+    matches by their residuals); NaN only if degenerate."""
+    import jax.numpy as jnp
+
+    dtype = jnp.result_type(float)
+    P, *_ = _dlt.solve_validated(
+        jnp.asarray(world, dtype),
+        jnp.asarray(pixels, dtype),
+        jnp.asarray(found),
+        _dlt.default_rcond(dtype),
+        np.inf,
+    )
+    return np.asarray(P, dtype=np.float64)
+
+
+def _guessed_intrinsics(P: np.ndarray) -> np.ndarray | None:
+    """`K` of a camera `P` (zero skew), or None if it does not decompose."""
+    import jax.numpy as jnp
+
+    camera = Camera.from_projection(jnp.asarray(P), skew=False)
+    K = np.asarray(camera.K, dtype=np.float64)
+    return K if np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 else None
+
+
+def _pose(K: np.ndarray, world: np.ndarray, pixels: np.ndarray, found: np.ndarray, start=None):
+    """`P = K [R | t]` of the pose that best projects `world[found]` onto `pixels[found]`, from
+    `start (R, t)` or from the homography of the points' best-fitting plane; and its RMS."""
+    import jax.numpy as jnp
+
+    from . import _refine
+    from ._planar import _homography_kernel
+    from ._planar import _pose as _plane_pose
+
+    pts = world[found]
+    if start is None:  # the plane through the points: x_plane = A (X - c)
+        c = pts.mean(0)
+        A = np.linalg.svd(pts - c)[2]
+        A[2] = np.cross(A[0], A[1])
+        q = (pts - c) @ A[:2].T
+        H, _ = _homography_kernel(
+            jnp.asarray(q), jnp.asarray(pixels[found]), jnp.ones(len(q), bool), 1e-12
+        )
+        Rp, tp = _plane_pose(jnp.asarray(K), H, jnp.asarray(q), jnp.ones(len(q), bool))
+        R = np.asarray(Rp) @ A
+        start = (R, np.asarray(tp) - R @ c)
+    camera = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *start)
+    out = _refine.refine(
+        camera,
+        world,
+        np.where(found[:, None], pixels, 0.0),
+        found,
+        fix=("intrinsics",),
+        distortion=(),
+    )
+    R, t = np.asarray(out.cameras.R), np.asarray(out.cameras.t)
+    return K @ np.c_[R, t], (R, t), float(out.rms_after)
+
+
+def _fit(world, pixels, found, K, pose):
+    """The camera of the matched dots: the DLT where they determine one, else the pose for the
+    focal guess; `(P, pose, rms)` or None."""
+    if found.sum() >= 6 and not _coplanar(world[found]):
+        P = _dlt_any_fit(world, np.where(found[:, None], pixels, 0.0), found)
+        if np.isfinite(P).all():
+            residual = _label._project(P, world)[found] - pixels[found]  # noqa: SLF001
+            return P, None, float(np.sqrt(np.nanmean(np.sum(residual**2, -1))))
+    if K is None or found.sum() < 4:
+        return None
+    return _pose(K, world, pixels, found, pose)
+
+
+def _trimmed_fit(world, pixels, found, K, pose, rounds: int = 3):
+    """`_fit`, then again without the matches whose residual exceeds three robust standard
+    deviations (1.4826 median) and 1 px: wrong matches near right ones, from a rough camera.
+    Returns the fit (or None) and the matches kept."""
+    for _ in range(rounds):
+        fit = _fit(world, pixels, found, K, pose)
+        if fit is None:
+            return None, found
+        residual = np.linalg.norm(_label._project(fit[0], world) - pixels, axis=-1)  # noqa: SLF001
+        residual = np.where(found, residual, 0.0)
+        bad = found & (residual > max(3 * 1.4826 * np.median(residual[found]), 1.0))
+        if not bad.any() or found.sum() - bad.sum() < 6:
+            return fit, found
+        found = found & ~bad
+    return _fit(world, pixels, found, K, pose), found
+
+
+def _spread(points: np.ndarray) -> float:
+    """The largest distance between finite points (their extent)."""
+    points = points[np.all(np.isfinite(points), -1)]
+    return float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+
+
+def _spacing(points: np.ndarray) -> float:
+    """The median distance from each finite point to its nearest neighbour."""
+    points = points[np.all(np.isfinite(points), -1)]
+    if len(points) < 2:
+        return np.inf
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(1)))
+
+
+def match_dots(
+    detection: Detection,
+    target: Target,
+    seed,
+    *,
+    focal: float | None = None,
+    principal_point: tuple[float, float] | None = None,
+    max_rms: float | None = None,
+    min_dots: int | None = None,
+    max_rounds: int = 20,
+) -> Labels:
+    """Tell which detected blob is which dot of `target`, from a rough camera or a few clicks.
+
+    See the module notes for the method. A view it cannot label with certainty comes back with
+    `ok=False`, an empty mask and the reason, never with a wrong label.
+
+    **Arguments:**
+
+    - `detection`: the blobs found in one image (`mvcalib.detect_dots`).
+    - `target`: the target photographed, e.g. `mvcalib.targets.from_file(path)`; clicks name
+      its dots by `target.ids`.
+    - `seed`: a rough `Camera` of this view, or clicked correspondences `(pixels (k, 2),
+      dot_ids (k,))`: six or more, not all on one plane, are enough alone; four or five (or
+      coplanar ones) need `focal`.
+    - `focal`: a focal-length guess in pixels (e.g. the lens's focal length over the pixel
+      pitch); `principal_point`: `(x, y)` in pixels, default the image's centre.
+    - `max_rms`: the largest RMS (pixels) of the final camera's fit to the matched dots that is
+      trusted; default 5 % of the distance between neighbouring dots' images (as `label_dots`).
+    - `min_dots`: the fewest matched dots that make a labelling; default 10 (or the target's
+      size, if smaller).
+    - `max_rounds`: of match and calibrate.
+
+    **Returns:** `Labels` (see there; `message` summarises the matching or says why it failed).
+
+    **Example:**
+
+    ```python
+    >>> import jax, numpy as np, mvcalib as mc
+    >>> target = mc.targets.box_corner_grid(4)
+    >>> camera = mc.synthetic.random_rig(jax.random.key(1), 1, target).cameras[0]
+    >>> detection = mc.detect_dots(mc.synthetic.render(camera, target, key=0))
+    >>> clicks = np.asarray(camera.project(target.points[[0, 5, 20, 26, 40, 47]]))
+    >>> labels = mc.match_dots(detection, target, (clicks + 1.0, [0, 5, 20, 26, 40, 47]))
+    >>> labels.ok, int(labels.mask.sum())
+    (True, 48)
+
+    ```
+    """
+    world = np.asarray(target.points, dtype=np.float64)
+    blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
+    M, B = len(world), len(blobs)
+    min_dots = min(10, M) if min_dots is None else int(min_dots)
+    K = _intrinsics(focal, principal_point, detection)
+    clicks = None
+    if isinstance(seed, Camera):
+        if seed.batch_shape:
+            raise ValueError(f"`seed` must be one camera; got a rig of shape {seed.batch_shape}.")
+        P, pose = np.asarray(seed.projection_matrix(), dtype=np.float64), None
+    else:
+        try:
+            pixels, ids = seed
+        except (TypeError, ValueError):
+            raise ValueError(
+                "`seed` is a Camera or clicked correspondences (pixels (k, 2), dot_ids (k,))."
+            ) from None
+        pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        where = target.index(ids)
+        if len(where) != len(pixels):
+            raise ValueError(f"{len(pixels)} clicked pixels for {len(where)} dot ids.")
+        if len(np.unique(where)) != len(where):
+            raise ValueError("a dot id is clicked twice.")
+        if not np.all(np.isfinite(pixels)):
+            raise ValueError("a clicked pixel is not finite.")
+        clicks = (pixels, where)
+        found = np.zeros(M, bool)
+        found[where] = True
+        at = np.zeros((M, 2))
+        at[where] = pixels
+        enough = len(where) >= 6 and not _coplanar(world[where])
+        if not enough and (K is None or len(where) < 4):
+            raise ValueError(
+                f"{len(where)} clicks{' on one plane' if len(where) >= 6 else ''}: give six or "
+                "more dots not all on one plane, or four or more and `focal` (a focal-length "
+                "guess in pixels)."
+            )
+        first = _fit(world, at, found, K if not enough else None, None)
+        if first is None:
+            return Labels.failed(
+                M, B, "the clicks do not fit one camera: check their dot ids and positions"
+            )
+        P, pose, _ = first
+    if K is None:  # the seed's own intrinsics: the pose fallback for coplanar matches
+        K = _guessed_intrinsics(P)
+    if B < min_dots:
+        return Labels.failed(M, B, f"only {B} blobs found; matching needs {min_dots}")
+
+    spacing = _spacing(_label._project(P, world))  # noqa: SLF001
+    if not np.isfinite(spacing):
+        return Labels.failed(M, B, "the seed camera sees fewer than two dots of the target")
+    gate = _FIRST_GATE * spacing
+    # Clicks: the seed's camera is best around them, so the matching grows from there, the
+    # radius around the clicks doubling each round; a camera seed predicts everywhere alike.
+    radius = 2 * spacing if clicks is not None else np.inf
+    index, rms, rounds = None, np.inf, 0
+    for rounds in range(1, max_rounds + 1):  # noqa: B007 (reported below)
+        predicted = _label._project(P, world)  # noqa: SLF001
+        if clicks is not None:
+            near = np.min(np.linalg.norm(predicted[:, None] - clicks[0][None], axis=-1), axis=1)
+            predicted = np.where((near <= radius)[:, None], predicted, np.nan)
+        new = _mutual(predicted, blobs, gate)
+        found = new >= 0
+        if found.sum() < 4:
+            return Labels.failed(
+                M, B, f"only {found.sum()} dots lie near their predicted position: check the seed"
+            )
+        pixels = np.where(found[:, None], blobs[np.maximum(new, 0)], 0.0)
+        fit, found = _trimmed_fit(world, pixels, found, K, pose)
+        # a fit that fails (wrong matches, from a poor seed) is tried again on the nearer half
+        # of the matches
+        distance = np.linalg.norm(pixels - predicted, axis=-1)
+        while fit is None and found.sum() >= 8:
+            found = found & (distance <= np.median(distance[found]))
+            fit, found = _trimmed_fit(world, pixels, found, K, pose)
+        if fit is None:
+            return Labels.failed(
+                M,
+                B,
+                f"the {int((new >= 0).sum())} dots near their predicted position do not fit "
+                "one camera: check the seed",
+            )
+        new = np.where(found, new, -1)
+        converged = index is not None and np.array_equal(new, index) and np.isinf(radius)
+        index = new
+        if converged:
+            break
+        P, pose, rms = fit
+        if np.isinf(radius):  # (while it grows, the camera extrapolates: the gate stays wide)
+            gate = min(gate, max(_GATE_RMS * rms, _MIN_GATE))
+        radius *= 2  # (once it spans the predicted target, every dot is in: no radius)
+        if radius >= _spread(_label._project(P, world)):  # noqa: SLF001
+            radius = np.inf
+    else:
+        return Labels.failed(M, B, f"the matches did not settle in {max_rounds} rounds")
+    found = index >= 0
+    n = int(found.sum())
+    spacing = _spacing(blobs[index[found]])
+    max_rms = 0.05 * spacing if max_rms is None else float(max_rms)
+    if n < min_dots:
+        return Labels.failed(M, B, f"only {n} dots matched; need {min_dots}")
+    if not rms <= max_rms:
+        return Labels.failed(
+            M, B, f"the matched dots fit a camera to {rms:.2f} px RMS only (max {max_rms:.2f})"
+        )
+    message = f"{n} of {M} dots matched in {rounds} rounds, {rms:.2f} px RMS"
+    if clicks is not None:  # clicks the final labelling disagrees with are reported, not used
+        pixels, where = clicks
+        off = np.linalg.norm(blobs[index[where]] - pixels, axis=-1)
+        moved = found[where] & (off > max(_FIRST_GATE * spacing, 3 * _MIN_GATE))
+        for name, which in (("clicks corrected", moved), ("clicked dots not found", ~found[where])):
+            if which.any():
+                message += f"; {name}: ids " + ", ".join(
+                    str(int(i)) for i in target.ids[where[which]]
+                )
+    return Labels(
+        pixels=np.where(found[:, None], blobs[np.maximum(index, 0)], np.nan),
+        mask=found,
+        index=index,
+        spurious=np.setdiff1d(np.arange(B), index[found]),
+        ok=True,
+        rms=rms,
+        message=message,
+    )
