@@ -14,6 +14,7 @@ import numpy as np
 
 from ._detect import Detection, detect_dots
 from ._label import Labels, label_dots
+from ._match import match_dots
 from ._pipeline import Calibration, CalibrationError, calibrate
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
@@ -48,6 +49,8 @@ def read_image(path) -> np.ndarray:
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise ValueError(f"{path}: cannot be read as an image ({reason[:200]})") from None
     image = np.asarray(image)
+    if image.size == 0:  # (tifffile warns about a broken file and returns nothing)
+        raise ValueError(f"{path}: cannot be read as an image (no image data in the file)")
     if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
         image = np.moveaxis(image, 0, -1)  # planar (channels-first) TIFFs
     return image
@@ -150,6 +153,8 @@ def calibrate_images(
     refine: bool | dict = False,
     detect: dict | None = None,
     label: dict | None = None,
+    seeds=None,
+    focal=None,
     strict: bool = False,
     progress: bool | None = None,
     bias_iterations: int = 2,
@@ -170,7 +175,13 @@ def calibrate_images(
       or a stack `(C, height, width[, 3])`.
     - `target`: the photographed target; default `mvcalib.targets.box_corner()`.
     - `refine`: as for `mvcalib.calibrate` (e.g. `True`, or `dict(distortion=("k1", "k2"))`).
-    - `detect`, `label`: keyword arguments for `detect_dots` and `label_dots`.
+    - `detect`, `label`: keyword arguments for `detect_dots` and `label_dots` (or
+      `match_dots`, with seeds).
+    - `seeds`: for targets without fiducials (any target, e.g. `mvcalib.targets.from_file`):
+      one seed per image for `mvcalib.match_dots`, a rough `Camera` or clicked `(pixels (k, 2),
+      dot_ids (k,))`, or None for that image (then `label_dots`); `focal`: the focal-length
+      guess in pixels that four or five (or coplanar) clicks need, one for all images or one
+      per image.
     - `strict`: raise `CalibrationError` if any image gives no camera.
     - `progress`: print one line per image to stderr; default: when there are more than 4.
     - `bias_iterations`: rounds of perspective-bias correction: a dot's image is an ellipse
@@ -196,6 +207,12 @@ def calibrate_images(
     """
     target = box_corner() if target is None else target
     images = _as_list(images)
+    seeds = [None] * len(images) if seeds is None else list(seeds)
+    if len(seeds) != len(images):
+        raise ValueError(f"{len(seeds)} seeds for {len(images)} images: give one per image.")
+    focals = list(focal) if np.ndim(focal) == 1 else [focal] * len(images)
+    if len(focals) != len(images):
+        raise ValueError(f"{len(focals)} focal lengths for {len(images)} images.")
     progress = len(images) > 4 if progress is None else progress
     detect, label = dict(detect or {}), dict(label or {})
     names, detections, labels = [], [], []
@@ -205,7 +222,10 @@ def calibrate_images(
         detection = None
         try:
             detection = detect_dots(read_image(image) if is_path else image, **detect)
-            labels.append(label_dots(detection, target, **label))
+            if seeds[i] is None:
+                labels.append(label_dots(detection, target, **label))
+            else:
+                labels.append(match_dots(detection, target, seeds[i], focal=focals[i], **label))
         except ValueError as error:
             message = str(error).removeprefix(f"{names[-1]}: ")  # the name is shown beside it
             labels.append(Labels.failed(len(target.points), 0, message))
@@ -218,7 +238,9 @@ def calibrate_images(
     dtype = jnp.result_type(float)
     world = jnp.asarray(target.points, dtype)
     calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
-    for _ in range(int(bias_iterations)):
+    # (the bias is predicted from the dots' radii: a target without them keeps the centroids)
+    known_radii = bool(np.all(np.isfinite(target.radii)))
+    for _ in range(int(bias_iterations) if known_radii else 0):
         # A dot's image is an ellipse whose centroid is not the image of the dot's centre
         # (perspective: the nearer half looks larger). Predict that offset per dot from the
         # current camera, remove it from the measured centroids, and calibrate again.

@@ -58,7 +58,10 @@ EXAMPLES = {
                                   a 3-D point per tracked point seen by two cameras or more""",
     "calibrate-images": """\
   mvcalib calibrate-images cam*.png --out rig.json
-                                  one camera per photo of the box-corner target""",
+                                  one camera per photo of the box-corner target
+  mvcalib calibrate-images cam1.tif cam2.tif --target dots.txt --clicks clicks.csv \\
+      --focal 5800 --bright-dots --out rig.json
+                                  any target (id x y z per line), labelled from clicked dots""",
     "demo": """\
   mvcalib demo                    the paper's experiment with 0.3 px noise
   mvcalib demo --noise-free       no noise: the four snapshots agree to 1e-6 px
@@ -282,6 +285,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="refine each camera by Levenberg-Marquardt with radial/tangential distortion",
     )
     images.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
+    images.add_argument(
+        "--target",
+        metavar="FILE",
+        help="the target's dots, `id x y z` per line (or CSV with a header id,x,y,z); default "
+        "mvcalib's box corner, labelled from its fiducials",
+    )
+    images.add_argument(
+        "--clicks",
+        metavar="CSV",
+        help="clicked seeds, CSV with the header image,dot_id,pixel_x,pixel_y (image: the file's "
+        "name as given, or its position from 0); 6+ dots per image, or 4+ with --focal",
+    )
+    images.add_argument(
+        "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
+    )
 
     demo = command(
         "demo",
@@ -344,6 +362,12 @@ def _check_usage(parser, args) -> None:
         missing = [p for p in args.images if not pathlib.Path(p).is_file()]
         if missing:
             parser.error(f"no such image file: {missing[0]}")
+    if args.command == "calibrate-images":
+        for flag in ("target", "clicks"):
+            if getattr(args, flag) and not pathlib.Path(getattr(args, flag)).is_file():
+                parser.error(f"no such file: {getattr(args, flag)}")
+        if args.clicks and not args.target:
+            parser.error("--clicks name dots of a --target file")
     for flag in ("out", "plot", "save"):
         value = getattr(args, flag, None)
         if value and not pathlib.Path(value).resolve().parent.is_dir():
@@ -900,13 +924,18 @@ def _triangulate(args) -> int:
 
 # ---------------------------------------------------------------------------- images, demo
 def _calibrate_images(args) -> int:
-    from . import io
+    from . import io, targets
     from ._images import calibrate_images
 
+    target = targets.from_file(args.target) if args.target else targets.box_corner()
+    seeds = _clicks(args.clicks, args.images, target) if args.clicks else None
     result = calibrate_images(
         args.images,
+        target,
         refine=args.refine,
         detect=dict(dark_dots=not args.bright_dots),
+        seeds=seeds,
+        focal=args.focal,
         progress=not args.quiet,
     )
     print(result)
@@ -916,11 +945,48 @@ def _calibrate_images(args) -> int:
         names=result.names,
         status=result.calibration.status,
         rms=result.calibration.report.rms,
-        meta={"target": "box corner, 19 dots", "messages": result.messages},
+        meta={"target": target.name, "messages": result.messages},
     )
     n_ok = int(result.ok.sum())
     print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
     return 0 if n_ok == len(result.names) else 1
+
+
+def _clicks(path, images, target) -> list:
+    """The clicks file as one seed per image, `(pixels, dot_ids)` or None; `_Failed` with the
+    line for a row that names an unknown image or dot."""
+    import csv
+
+    import numpy as np
+
+    rows: dict[int, list] = {}
+    names = [pathlib.Path(p).name for p in images]
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        needed = {"image", "dot_id", "pixel_x", "pixel_y"}
+        if not needed <= set(reader.fieldnames or ()):
+            raise _Failed(f"{path}: the header must name image,dot_id,pixel_x,pixel_y")
+        for line, row in enumerate(reader, start=2):
+            image = row["image"].strip()
+            if image in images or image in names:
+                i = images.index(image) if image in images else names.index(image)
+            elif image.isdigit() and int(image) < len(images):
+                i = int(image)
+            else:
+                raise _Failed(f"{path}, line {line}: no image {image!r} among the images given")
+            try:
+                dot, x, y = int(row["dot_id"]), float(row["pixel_x"]), float(row["pixel_y"])
+            except ValueError:
+                message = f"{path}, line {line}: dot_id must be an integer, pixels numbers"
+                raise _Failed(message) from None
+            if dot not in set(target.ids.tolist()):
+                raise _Failed(f"{path}, line {line}: the target has no dot {dot}")
+            rows.setdefault(i, []).append((dot, x, y))
+    seeds = [None] * len(images)
+    for i, clicked in rows.items():
+        clicked = np.asarray(clicked, dtype=float)
+        seeds[i] = (clicked[:, 1:], clicked[:, 0].astype(int))
+    return seeds
 
 
 def _demo(args) -> int:

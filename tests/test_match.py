@@ -154,3 +154,59 @@ def test_openptv_cavity_from_its_own_clicks(options):
         assert float(refined.report.rms) <= float(dlt.report.rms) + 1e-9
         if camera < 2:  # the block hides the two lowest rows: 45 dots visible
             assert n <= 45
+
+
+# ------------------------------------------------------------------------ the command line
+def cavity_clicks(root, path, rows=None):
+    ids, pixels = mc.io.load_openptv_clicks(
+        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
+    )
+    lines = ["image,dot_id,pixel_x,pixel_y"]
+    for c in range(4):
+        lines += [f"cam{c + 1}.tif,{i},{x},{y}" for i, (x, y) in zip(ids[c], pixels[c])]
+    path.write_text("\n".join(lines + (rows or [])) + "\n")
+    return path
+
+
+def run_cli(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run(
+        [sys.executable, "-m", "mvcalib", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
+    pytest.importorskip("imagecodecs")  # the photos are LZW-compressed TIFFs
+    root = data_dir("openptv_cavity")
+    images = [root / "cal" / f"cam{c}.tif" for c in range(1, 5)]
+    target = root / "cal" / "target_on_a_side.txt"
+    clicks = cavity_clicks(root, tmp_path / "clicks.csv")
+    common = ["--target", target, "--focal", 70.0 / 0.012, "--bright-dots"]
+    out = run_cli(
+        "calibrate-images", *images, *common, "--clicks", clicks, "--out", tmp_path / "r.json"
+    )
+    assert out.returncode == 0, out.stderr
+    assert "4 of 4 cameras calibrated" in out.stdout
+    cameras, names = mc.io.load_json(tmp_path / "r.json")
+    assert cameras.batch_shape == (4,) and np.all(np.isfinite(np.asarray(cameras.alpha_u)))
+    # an unknown dot id in the clicks: exit 1, one line naming the row
+    bad = cavity_clicks(root, tmp_path / "bad.csv", ["cam1.tif,999,10,10"])
+    out = run_cli(
+        "calibrate-images", *images, *common, "--clicks", bad, "--out", tmp_path / "b.json"
+    )
+    assert out.returncode == 1 and "line 18: the target has no dot 999" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+    # a corrupt photo: that camera flagged with the reason, exit 1, the others calibrated
+    broken = tmp_path / "cam2.tif"
+    broken.write_bytes(b"II*\x00 not a tiff")
+    out = run_cli(
+        "calibrate-images", images[0], broken, *images[2:], *common, "--clicks", clicks,
+        "--out", tmp_path / "c.json",
+    )  # fmt: skip
+    assert out.returncode == 1 and "3 of 4 cameras calibrated" in out.stdout, out.stdout
+    assert "cam2.tif: cannot be read as an image" in out.stderr, out.stderr
