@@ -56,6 +56,10 @@ class Detection:
 
 
 # ---------------------------------------------------------------------------- input validation
+# The least blob area kept when dots are large (and the most the adaptive default asks for).
+_MIN_AREA = 12
+
+
 def _as_grey(image) -> np.ndarray:
     """The image as float32 grey levels in [0, 1], or a ValueError saying what is wrong."""
     try:
@@ -192,7 +196,7 @@ def _regions(labels, keep, **kwargs):
 def detect_dots(
     image,
     *,
-    min_area: int = 12,
+    min_area: int | None = None,
     max_area: int | None = None,
     max_ellipse_error: tuple[float, float] = (0.4, 0.02),
     min_solidity: float = 0.8,
@@ -232,7 +236,11 @@ def detect_dots(
     **Arguments:**
 
     - `image`: `(height, width)` grey or `(height, width, 3|4)` colour; uint8, uint16 or float.
-    - `min_area`, `max_area`: blob size bounds in pixels; `max_area` defaults to 2 % of the image.
+    - `min_area`, `max_area`: blob size bounds in pixels. `min_area` by default adapts to the
+      image: a quarter of the median area of the dot-shaped candidates, between 2 and 12 pixels
+      (12 for dots of 48 pixels' area or more: specks of noise and dust stay out; 3 for the
+      2-3 px dots of a large PIV image, which a fixed 12 would drop). `max_area` defaults to 2 %
+      of the image.
     - `max_ellipse_error`: `(pixels, fraction)`: a blob's outline may stray from its best-fit
       ellipse by an RMS distance of at most `pixels + fraction * b`, `b` its minor semi-axis.
       Plain circularity would reject dots seen obliquely; every dot, from any angle, is an
@@ -283,7 +291,8 @@ def detect_dots(
     # 3. Background by opening. The square must fit inside no dot: its side is the widest
     # dot-like candidate's minor axis plus the blurred rims on either side.
     if dot_size is None:
-        _, widths = _candidates(measure.label(binary), min_area, max_area, max_aspect)
+        size_area = _MIN_AREA if min_area is None else min_area
+        _, widths = _candidates(measure.label(binary), size_area, max_area, max_aspect)
         dot_size = float(widths.max()) if len(widths) else 30.0
     half = int(np.ceil(dot_size / 2.0)) + margin + 2
     square = morphology.footprint_rectangle((2 * half + 1, 2 * half + 1), decomposition="separable")
@@ -301,6 +310,10 @@ def detect_dots(
     noise = 1.4826 * np.median(np.abs(sample - offset))
     level = max(_otsu(smoothed), offset + 6.0 * noise)
     labels = measure.label(smoothed > level, connectivity=2)
+    if min_area is None:  # a quarter of the typical candidate's area, 2 to 12 pixels
+        areas = np.bincount(labels.ravel())[1:]
+        typical = np.median(areas[areas >= 2]) if np.any(areas >= 2) else 4 * _MIN_AREA
+        min_area = int(np.clip(round(typical / 4), 2, _MIN_AREA))
     candidates, _ = _candidates(labels, min_area, max_area, max_aspect)
     kept = []
     for region in _regions(labels, candidates):

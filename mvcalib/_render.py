@@ -53,8 +53,9 @@ def dot_normals(target: Target) -> np.ndarray:
         normals[pick, axis] = 1.0
     if not normals.any(axis=1).all():
         bad = np.flatnonzero(~normals.any(axis=1)).tolist()
+        shown = ", ".join(map(str, bad[:8])) + (f", ... ({len(bad)} dots)" if len(bad) > 8 else "")
         raise ValueError(
-            f"cannot tell which face dots {bad} lie on: no coordinate is zero. Pass `normals=` "
+            f"cannot tell which face dots {shown} lie on: no coordinate is zero. Pass `normals=` "
             "(one unit normal per dot) to render such a target."
         )
     return normals

@@ -142,6 +142,85 @@ def from_file(path, *, dot_radius: float = float("nan"), units: str = "mm") -> T
     )
 
 
+def dot_grid(
+    rows: int,
+    cols: int,
+    spacing: float,
+    *,
+    asymmetric: bool = False,
+    dot_radius: float | None = None,
+    units: str = "mm",
+) -> Target:
+    """A printed grid of `rows x cols` dots on the plane z = 0, `spacing` apart (ids row by row).
+    `asymmetric=True` is OpenCV's asymmetric circles grid: every other row shifted by half a
+    spacing, rows half a spacing apart. The dots' radius defaults to a fifth of the spacing.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> grid = mc.targets.dot_grid(3, 4, 10.0)
+    >>> grid.points.shape, grid.points[5].tolist()
+    ((12, 3), [10.0, 10.0, 0.0])
+
+    ```
+    """
+    rows, cols = int(rows), int(cols)
+    if rows < 2 or cols < 2 or not spacing > 0:
+        raise ValueError(f"a dot grid needs rows, cols >= 2 and spacing > 0; got {rows, cols}.")
+    r, c = (x.ravel() for x in np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij"))
+    x = (c + 0.5 * (r % 2) * asymmetric) * spacing
+    y = r * spacing * (0.5 if asymmetric else 1.0)
+    points = np.c_[x, y, np.zeros_like(x)].astype(float)
+    return Target(
+        name=f"{'asymmetric ' if asymmetric else ''}dot grid {rows} x {cols}",
+        points=points,
+        dot_radius=0.2 * spacing if dot_radius is None else float(dot_radius),
+        global_ids=np.arange(len(points)),
+        local_to_global=np.eye(4),
+        units=units,
+    )
+
+
+def plate(
+    rows: int,
+    cols: int,
+    spacing: float,
+    *,
+    levels=(0.0, -2.0),
+    dot_radius: float | None = None,
+    units: str = "mm",
+) -> Target:
+    """A PIV calibration plate: a `rows x cols` dot grid on each of several levels (z =
+    `levels[k]`, facing +z), each level's grid shifted by `spacing / len(levels)` in x and y from
+    the one before, so that no dot hides another seen from above (as on two-level plates). Ids
+    level by level, row by row.
+
+    **Example:**
+
+    ```python
+    >>> import mvcalib as mc
+    >>> p = mc.targets.plate(2, 3, 5.0)
+    >>> len(p), sorted(set(p.points[:, 2].tolist()))
+    (12, [-2.0, 0.0])
+
+    ```
+    """
+    grid = dot_grid(rows, cols, spacing).points
+    shift = spacing / len(levels)
+    points = np.concatenate(
+        [grid + [k * shift, k * shift, float(z)] for k, z in enumerate(levels)], axis=0
+    )
+    return Target(
+        name=f"plate of {len(levels)} levels, {rows} x {cols} dots each",
+        points=points,
+        dot_radius=0.2 * spacing if dot_radius is None else float(dot_radius),
+        global_ids=np.arange(len(points)),
+        local_to_global=np.eye(4),
+        units=units,
+    )
+
+
 def box_corner_grid(n: int = 6, size: float = 200.0) -> Target:
     """A denser box corner: an `n x n` grid of dots on each of its three faces (`3 n^2` dots).
 
