@@ -97,12 +97,20 @@ def shard(tree, mesh: Mesh | None = None, *, axis: int | None = 0):
     names = tuple(mesh.axis_names)
     split = names[0] if len(names) == 1 else names
 
+    def put(x, sharding):
+        # Across processes, from each process's own slices of its (identical) host array:
+        # `jax.device_put` would first check that every process passed the same array, with
+        # `np.equal`, and fail on any NaN (the unseen pixels of a correspondences file).
+        if jax.process_count() > 1 and isinstance(x, np.ndarray):
+            return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+        return jax.device_put(x, sharding)
+
     def place(x):
         if not isinstance(x, (jax.Array, np.ndarray)):
             return x
         ndim = np.ndim(x)
         if axis is None or ndim <= axis:
-            return jax.device_put(x, NamedSharding(mesh, PartitionSpec()))
+            return put(x, NamedSharding(mesh, PartitionSpec()))
         size = np.shape(x)[axis]
         if size % n_devices:
             raise ValueError(
@@ -112,7 +120,7 @@ def shard(tree, mesh: Mesh | None = None, *, axis: int | None = 0):
                 "use fewer devices."
             )
         spec = PartitionSpec(*([None] * axis), split)
-        return jax.device_put(x, NamedSharding(mesh, spec))
+        return put(x, NamedSharding(mesh, spec))
 
     return jax.tree_util.tree_map(place, tree)
 
