@@ -62,6 +62,20 @@ class Labels:
     message: str
 
     @classmethod
+    def matched(cls, blobs: np.ndarray, index: np.ndarray, rms: float, message: str) -> Labels:
+        """The labelling that gives dot `m` the blob `index[m]` of `blobs (K, 2)` (-1: none)."""
+        found = index >= 0
+        return cls(
+            pixels=np.where(found[:, None], blobs[np.maximum(index, 0)], np.nan),
+            mask=found,
+            index=index,
+            spurious=np.setdiff1d(np.arange(len(blobs)), index[found]),
+            ok=True,
+            rms=rms,
+            message=message,
+        )
+
+    @classmethod
     def failed(cls, n_dots: int, n_blobs: int, message: str) -> Labels:
         return cls(
             pixels=np.full((n_dots, 2), np.nan),
@@ -321,13 +335,5 @@ def label_dots(
             break
     else:
         return Labels.failed(M, K, message)
-    found = index >= 0
-    return Labels(
-        pixels=np.where(found[:, None], blobs[np.maximum(index, 0)], np.nan),
-        mask=found,
-        index=index,
-        spurious=np.setdiff1d(np.arange(K), index[found]),
-        ok=True,
-        rms=rms,
-        message=f"{n} of {M} dots labelled, {K - n} other blobs, fit {rms:.2f} px RMS",
-    )
+    message = f"{n} of {M} dots labelled, {K - n} other blobs, fit {rms:.2f} px RMS"
+    return Labels.matched(blobs, index, rms, message)

@@ -354,12 +354,4 @@ def match_dots(
                 message += f"; {name}: ids " + ", ".join(
                     str(int(i)) for i in target.ids[where[which]]
                 )
-    return Labels(
-        pixels=np.where(found[:, None], blobs[np.maximum(index, 0)], np.nan),
-        mask=found,
-        index=index,
-        spurious=np.setdiff1d(np.arange(B), index[found]),
-        ok=True,
-        rms=rms,
-        message=message,
-    )
+    return Labels.matched(blobs, index, rms, message)

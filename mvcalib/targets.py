@@ -172,14 +172,8 @@ def dot_grid(
     x = (c + 0.5 * (r % 2) * asymmetric) * spacing
     y = r * spacing * (0.5 if asymmetric else 1.0)
     points = np.c_[x, y, np.zeros_like(x)].astype(float)
-    return Target(
-        name=f"{'asymmetric ' if asymmetric else ''}dot grid {rows} x {cols}",
-        points=points,
-        dot_radius=0.2 * spacing if dot_radius is None else float(dot_radius),
-        global_ids=np.arange(len(points)),
-        local_to_global=np.eye(4),
-        units=units,
-    )
+    name = f"{'asymmetric ' if asymmetric else ''}dot grid {rows} x {cols}"
+    return _printed(name, points, spacing, dot_radius, units)
 
 
 def plate(
@@ -211,8 +205,15 @@ def plate(
     points = np.concatenate(
         [grid + [k * shift, k * shift, float(z)] for k, z in enumerate(levels)], axis=0
     )
+    name = f"plate of {len(levels)} levels, {rows} x {cols} dots each"
+    return _printed(name, points, spacing, dot_radius, units)
+
+
+def _printed(name, points, spacing, dot_radius, units) -> Target:
+    """A generated target in its own frame (all dots global, the identity placement); dots a
+    fifth of the spacing in radius unless given."""
     return Target(
-        name=f"plate of {len(levels)} levels, {rows} x {cols} dots each",
+        name=name,
         points=points,
         dot_radius=0.2 * spacing if dot_radius is None else float(dot_radius),
         global_ids=np.arange(len(points)),
