@@ -29,6 +29,7 @@ __all__ = [
     "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
     "load_correspondences", "Observations", "save_observations", "load_observations",
     "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
+    "load_openptv_calibration",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -1279,3 +1280,206 @@ def load_openptv_clicks(man_ori_par, man_ori_dat) -> tuple[np.ndarray, np.ndarra
         raise ValueError(f"{par}: {len(ids)} ids is not {per_camera} per camera.")
     C = len(ids) // per_camera
     return ids.astype(int).reshape(C, per_camera), pixels.reshape(C, per_camera, 2) - 0.5
+
+
+# --------------------------------------------------------------------------------- OpenPTV
+_OPENPTV_ADDPAR_DEFAULT = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # OpenPTV's, when there is no file
+
+
+def _openptv_numbers(path: pathlib.Path, what: str, count: int) -> np.ndarray:
+    """The whitespace-separated numbers of an OpenPTV text file, exactly `count` of them."""
+    try:
+        tokens = path.read_text().split()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"cannot read OpenPTV {what} {path}: {error}") from None
+    try:
+        numbers = np.array([float(token) for token in tokens])
+    except ValueError as error:
+        raise ValueError(f"{path}: not an OpenPTV {what} ({error}).") from None
+    if len(numbers) != count or not np.all(np.isfinite(numbers)):
+        raise ValueError(
+            f"{path}: an OpenPTV {what} holds {count} finite numbers; got {len(numbers)}"
+            + ("." if len(numbers) != count else " with NaN or inf.")
+        )
+    return numbers
+
+
+def _openptv_ptv_par(path: pathlib.Path) -> tuple[tuple[int, int], tuple[float, float]]:
+    """`(image_size, pixel_size)` from OpenPTV's `ptv.par`, read as OpenPTV reads it: the
+    number of cameras, an image name and a calibration image name per camera, then hp_flag,
+    allCam_flag, tiff_flag, imx, imy, pix_x, pix_y, chfield, n1, n2, n3, d."""
+    try:
+        tokens = path.read_text().split()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"cannot read OpenPTV parameters {path}: {error}") from None
+    try:
+        n = int(tokens[0])
+        if n < 1:
+            raise ValueError(f"{n} cameras")
+        names, numbers = tokens[1 : 1 + 2 * n], [float(v) for v in tokens[1 + 2 * n :]]
+    except (IndexError, ValueError) as error:
+        raise ValueError(f"{path}: not an OpenPTV ptv.par ({error}).") from None
+    if len(names) != 2 * n or len(numbers) != 12 or not np.all(np.isfinite(numbers)):
+        raise ValueError(
+            f"{path}: an OpenPTV ptv.par holds the number of cameras, two file names per camera "
+            f"and 12 numbers (hp_flag allCam_flag tiff_flag imx imy pix_x pix_y chfield n1 n2 n3 "
+            f"d); got {len(tokens)} entries for {n} cameras."
+        )
+    imx, imy, pix_x, pix_y, chfield = numbers[3:8]
+    if imx != round(imx) or imy != round(imy):
+        raise ValueError(f"{path}: the image size {imx} x {imy} is not whole pixels.")
+    if chfield != 0:
+        raise ValueError(
+            f"{path}: chfield = {chfield:g} (interlaced fields); only full frames (0) are read."
+        )
+    return (int(imx), int(imy)), (pix_x, pix_y)
+
+
+def _openptv_rotation(omega: float, phi: float, kappa: float) -> np.ndarray:
+    """OpenPTV's `rotation_matrix`: the matrix `dm` whose columns are the camera's axes in the
+    world frame (a camera point is `dm^T (X - X0)`)."""
+    co, so, cp, sp, ck, sk = (f(a) for a in (omega, phi, kappa) for f in (np.cos, np.sin))
+    return np.array(
+        [
+            [cp * ck, -cp * sk, sp],
+            [co * sk + so * sp * ck, co * ck - so * sp * sk, -so * cp],
+            [so * sk - co * sp * ck, so * ck + co * sp * sk, co * cp],
+        ]
+    )
+
+
+def load_openptv_calibration(
+    ori, addpar=None, *, ptv_par=None, pixel_size=None, image_size=None, scx_scales=None
+) -> Camera:
+    """One camera of an OpenPTV calibration (`camN.tif.ori` and `camN.tif.addpar`) as an
+    mvcalib `Camera`, in mvcalib's conventions: pixels with the origin at the centre of the
+    top-left pixel and y down (OpenPTV's pixel origin is the pixel's corner: mvcalib's pixel =
+    OpenPTV's - 0.5 px), and `x_cam = R X + t` with `X` in the target's units (mm).
+
+    The `.ori` file holds 21 numbers: the projection centre `X0 Y0 Z0`, the angles `omega phi
+    kappa` (radians), the 3 x 3 rotation matrix, the principal point `xh yh` and principal
+    distance `c` (mm on the sensor, y up) and the glass vector. The rotation is computed from
+    the angles, as OpenPTV does when it reads the file; a matrix that disagrees with them (by
+    more than 1e-6) is refused. The `.addpar` file holds 7: `k1 k2 k3 p1 p2 scx she` (Brown's
+    radial and decentering terms in mm, scale and shear). Without `addpar`, the `.addpar` next
+    to `ori` (`camN.tif.ori` -> `camN.tif.addpar`) is read if there is one; if there is none,
+    the terms are OpenPTV's defaults (no distortion, `scx = 1`, `she = 0`).
+
+    The sensor's pixel size (mm) and image size `(width, height)` in pixels come from OpenPTV's
+    `ptv.par` (`ptv_par`), or from `pixel_size` (one number, or `(x, y)`) and `image_size`:
+    give one or the other. Interlaced fields (`chfield` other than 0) are refused.
+
+    The principal distance over the pixel size gives the focal lengths, and the shear `she` a
+    skew. OpenPTV's versions disagree on what `scx` scales: its older C library and
+    openptv-python scale x only (`x' = scx x - sin(she) y`, `y' = cos(she) y`), optv 0.3
+    scales both (`x' = scx (x - sin(she) y)`, `y' = scx cos(she) y`). A file with `scx` other
+    than 1 is refused unless `scx_scales` says which wrote it: `"x"` or `"xy"`.
+
+    OpenPTV's distortion terms become OpenCV's, in normalised coordinates: `k1 c^2, k2 c^4,
+    k3 c^6`, `p1 = -c p2'`, `p2 = c p1'` (OpenPTV's `p1' p2'`; y points up in OpenPTV's image
+    coordinates). That is exact when the principal point is at the sensor's centre (`xh = yh =
+    0`; OpenPTV's older C code differs from optv 0.3, and from this, by a term of second order
+    in the distortion: its y uses the distorted x in `2 p1' x y`). Otherwise OpenPTV distorts
+    about the sensor's centre, not the principal point, which Brown-Conrady about the principal
+    point cannot express: non-zero distortion terms are then refused.
+
+    Refraction is not part of it: OpenPTV models cameras looking through a flat glass wall into
+    water (`ptv.par`'s refractive indices `n1 n2 n3` and glass thickness, and the `.ori`'s
+    glass vector), and a pinhole `Camera` has no such model. This camera is OpenPTV's with all
+    refractive indices 1; when the media differ, it does not project where OpenPTV does (in
+    OpenPTV's cavity set-up, air / glass / water, by 65-113 px RMS).
+
+    **Example:**
+
+    ```python
+    >>> import pathlib, tempfile, numpy as np, mvcalib as mc
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "cam1.tif.ori").write_text(
+    ...     "0 0 500\\n0 0 0\\n1 0 0\\n0 1 0\\n0 0 1\\n0 0\\n60\\n0 0 125\\n")
+    >>> _ = (d / "cam1.tif.addpar").write_text("0 0 0 0 0 1 0")
+    >>> camera = mc.io.load_openptv_calibration(
+    ...     d / "cam1.tif.ori", pixel_size=0.01, image_size=(1280, 1024))
+    >>> [round(float(v), 6) for v in (camera.alpha_u, camera.alpha_v, camera.u0, camera.v0)]
+    [6000.0, 6000.0, 639.5, 511.5]
+    >>> np.round(camera.project(np.array([[10.0, 5.0, 0.0]])), 6).tolist()
+    [[759.5, 451.5]]
+
+    ```
+    """
+    ori = pathlib.Path(ori)
+    if scx_scales not in (None, "x", "xy"):
+        raise ValueError(f'`scx_scales` is None, "x" or "xy"; got {scx_scales!r}.')
+    if addpar is None:
+        sibling = ori.with_suffix(".addpar")
+        addpar = sibling if ori.suffix == ".ori" and sibling.is_file() else None
+    if ptv_par is not None:
+        if pixel_size is not None or image_size is not None:
+            raise ValueError("give `ptv_par`, or `pixel_size` and `image_size`; not both.")
+        image_size, pixel_size = _openptv_ptv_par(pathlib.Path(ptv_par))
+    elif pixel_size is None or image_size is None:
+        raise ValueError(
+            "the pixel size and image size are needed: give `ptv_par` (OpenPTV's ptv.par), or "
+            "`pixel_size` (mm) and `image_size` ((width, height) in pixels)."
+        )
+    try:
+        pix = np.broadcast_to(np.asarray(pixel_size, dtype=float), (2,))
+    except (TypeError, ValueError):
+        pix = np.full(2, np.nan)
+    if not np.all(np.isfinite(pix) & (pix > 0)):
+        raise ValueError(f"`pixel_size` is positive, in mm (one, or x and y); got {pixel_size!r}.")
+    try:
+        size = np.asarray(image_size, dtype=float)
+    except (TypeError, ValueError):
+        size = np.full(1, np.nan)
+    if size.shape != (2,) or not np.all(np.isfinite(size) & (size > 0)):
+        raise ValueError(f"`image_size` is (width, height) in pixels; got {image_size!r}.")
+
+    numbers = _openptv_numbers(ori, "orientation (.ori)", 21)
+    centre, angles, dm = numbers[0:3], numbers[3:6], numbers[6:15].reshape(3, 3)
+    xh, yh, c = numbers[15:18]  # numbers[18:21]: the glass vector (refraction)
+    if addpar is None:
+        k1, k2, k3, p1, p2, scx, she = _OPENPTV_ADDPAR_DEFAULT
+    else:
+        addpar = pathlib.Path(addpar)
+        k1, k2, k3, p1, p2, scx, she = _openptv_numbers(addpar, "distortion (.addpar)", 7)
+    rotation = _openptv_rotation(*angles)
+    if np.abs(rotation - dm).max() > 1e-6:
+        raise ValueError(
+            f"{ori}: the rotation matrix disagrees with the angles omega phi kappa = "
+            f"{angles.tolist()} by {np.abs(rotation - dm).max():.2g}; is the file consistent?"
+        )
+    if not c > 0:
+        raise ValueError(f"{ori}: the principal distance c = {c:g} mm is not positive.")
+    if not (scx > 0 and abs(she) < np.pi / 2):
+        raise ValueError(f"{addpar}: scx = {scx:g} and she = {she:g} do not map an image.")
+    if scx != 1.0 and scx_scales is None:
+        raise ValueError(
+            f"{addpar}: scx = {scx:.8g}, and OpenPTV's versions disagree on what it scales "
+            '(its older C library: x only; optv 0.3: x and y). Say which: scx_scales="x" '
+            'or "xy".'
+        )
+    if (k1, k2, k3, p1, p2) != (0.0, 0.0, 0.0, 0.0, 0.0) and (xh, yh) != (0.0, 0.0):
+        raise ValueError(
+            f"{addpar}: OpenPTV's distortion (k1 k2 k3 p1 p2 = {k1:g} {k2:g} {k3:g} {p1:g} "
+            f"{p2:g}) is about the sensor's centre, and the principal point of {ori} is off it "
+            f"(xh, yh = {xh:g}, {yh:g} mm): mvcalib's Brown-Conrady distortion, about the "
+            "principal point, cannot express it."
+        )
+    # OpenPTV: camera point p = dm^T (X - X0), looking down -z; image point (x, y) = -c (p_x,
+    # p_y) / p_z + (xh, yh), y up. mvcalib: z forward, y down: flip y and z.
+    R = np.diag([1.0, -1.0, -1.0]) @ rotation.T
+    t = -R @ centre
+    # The affine map after the distortion, x' = a x + b y, y' = d y, then OpenPTV's pixel
+    # (origin at the corner) = (x' / pix_x + imx / 2, imy / 2 - y' / pix_y).
+    scale = scx if scx_scales == "xy" else 1.0
+    a, b, d = scx, -scale * np.sin(she), scale * np.cos(she)
+    return Camera(
+        alpha_u=a * c / pix[0],
+        alpha_v=d * c / pix[1],
+        u0=(a * xh + b * yh) / pix[0] + size[0] / 2 - 0.5,
+        v0=size[1] / 2 - d * yh / pix[1] - 0.5,
+        R=R,
+        t=t,
+        skew=-b * c / pix[0],
+        dist=np.array([k1 * c**2, k2 * c**4, -p2 * c, p1 * c, k3 * c**6]),
+    )
