@@ -178,7 +178,8 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
 
     Each `[cam_i]` table holds `matrix` (K), `distortions` (OpenCV's k1 k2 p1 p2 k3),
     `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
-    the file's order of `cam_0, cam_1, ...`. Needs Python >= 3.11 (`tomllib`).
+    the file's order of `cam_0, cam_1, ...`. Needs Python >= 3.11 (`tomllib`). A camera with
+    `fisheye = true` is refused (ValueError): no lens model of mvcalib's describes it yet.
     """
     from ._rotation import rodrigues
 
@@ -187,6 +188,13 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     keys = sorted((k for k in document if re.fullmatch(r"cam_\d+", k)), key=lambda k: int(k[4:]))
     if not keys:
         raise ValueError(f"{path}: no [cam_N] tables.")
+    fisheye = [k for k in keys if document[k].get("fisheye", False)]
+    if fisheye:  # its 4 distortion terms are Kannala-Brandt's, not Brown-Conrady's
+        raise ValueError(
+            f"{path}: {', '.join(fisheye)} use aniposelib's fisheye model (`fisheye = true`), "
+            "which mvcalib's pinhole Camera cannot represent; read as a pinhole, its cameras "
+            "would project far from OpenCV's fisheye ones."
+        )
     try:
         K = np.array([document[k]["matrix"] for k in keys], dtype=float)
         dist = np.array([document[k].get("distortions", [0.0] * 5) for k in keys], dtype=float)

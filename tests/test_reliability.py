@@ -466,6 +466,22 @@ def test_malformed_aniposelib_files_are_refused_with_the_file_name(tmp_path):
             mc.io.load_aniposelib(path)
 
 
+def test_aniposelib_fisheye_cameras_are_refused_not_read_as_pinholes(tmp_path):
+    """Issue 43: a `fisheye = true` camera read as a pinhole landed ~1e6 px from OpenCV's."""
+    camera = (
+        "matrix = [[600.0, 0.0, 640.0], [0.0, 600.0, 360.0], [0.0, 0.0, 1.0]]\n"
+        "distortions = [0.1, -0.02, 0.003, -0.001]\nrotation = [0.0, 0.0, 0.0]\n"
+        "translation = [0.0, 0.0, 0.0]\nsize = [1280, 720]\n"
+    )
+    path = tmp_path / "calibration.toml"
+    path.write_text(f"[cam_0]\nname = 'A'\n{camera}\n[cam_1]\nname = 'B'\nfisheye = true\n{camera}")
+    with pytest.raises(ValueError, match="cam_1 use aniposelib's fisheye model"):
+        mc.io.load_aniposelib(path)
+    path.write_text(f"[cam_0]\nname = 'A'\nfisheye = false\n{camera}")
+    cameras, names = mc.io.load_aniposelib(path)  # fisheye = false: a pinhole, as before
+    assert names == ["A"] and float(cameras.alpha_u[0]) == 600.0
+
+
 @pytest.mark.parametrize("line", ["1", "1 PINHOLE 10 10 abc 1 2 3", "1 PINHOLE 10 10 5"])
 def test_malformed_colmap_cameras_are_refused_with_the_file_name(tmp_path, line):
     (tmp_path / "cameras.txt").write_text(line + "\n")
