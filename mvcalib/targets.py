@@ -116,11 +116,14 @@ def from_file(path, *, dot_radius: float = float("nan"), units: str = "mm") -> T
             header = None
         except ValueError:
             header = [n.strip().lower() for n in first.split(delimiter)]
-        rows = np.loadtxt(path, delimiter=delimiter, skiprows=int(header is not None), ndmin=2)
-        if header is not None:
+        if header is not None:  # checked first: a mistyped number makes line 1 no header
             missing = [n for n in ("id", "x", "y", "z") if n not in header]
             if missing:
-                raise ValueError(f"its header has no column {missing[0]!r} (it needs id, x, y, z)")
+                raise ValueError(
+                    f"line 1 is neither numbers nor a header naming id, x, y, z (no {missing[0]!r})"
+                )
+        rows = np.loadtxt(path, delimiter=delimiter, skiprows=int(header is not None), ndmin=2)
+        if header is not None:
             rows = rows[:, [header.index(n) for n in ("id", "x", "y", "z")]]
     except ValueError as error:
         raise ValueError(f"cannot read target file {path}: {error}") from None

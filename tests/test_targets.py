@@ -1,0 +1,84 @@
+"""Targets from files and generators, their ids, and OpenPTV's clicked seeds."""
+
+import numpy as np
+import pytest
+
+import mvcalib as mc
+
+
+def test_a_whitespace_file_keeps_its_ids(tmp_path):
+    path = tmp_path / "target.txt"
+    path.write_text("7 -40 -25 8\n3 -40 0 -8\n\n11 30 25.5 8\n")
+    target = mc.targets.from_file(path)
+    assert target.ids.tolist() == [7, 3, 11] and target.name == "target"
+    np.testing.assert_array_equal(target.points, [[-40, -25, 8], [-40, 0, -8], [30, 25.5, 8]])
+    assert target.index([11, 7]).tolist() == [2, 0]
+    with pytest.raises(ValueError, match="has the id 5"):
+        target.index([3, 5])
+
+
+def test_a_csv_file_with_a_header_in_any_order(tmp_path):
+    path = tmp_path / "dots.csv"
+    path.write_text("z,name_unused,x,id,y\n1.5,0,10,4,20\n0,0,-1,9,2\n")
+    target = mc.targets.from_file(path)
+    assert target.ids.tolist() == [4, 9]
+    np.testing.assert_array_equal(target.points, [[10, 20, 1.5], [-1, 2, 0]])
+    headerless = tmp_path / "plain.csv"
+    headerless.write_text("4,10,20,1.5\n9,-1,2,0\n")
+    np.testing.assert_array_equal(mc.targets.from_file(headerless).points, target.points)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "is empty"),
+        ("id,x,y\n1,2,3\n", "header naming id, x, y, z .no 'z'"),
+        ("1.5 0 0 0\n2 1 1 1\n", "must be integers"),
+        ("1 0 0 0\n1 1 1 1\n", "two dots share an id"),
+        ("1 0 0 nan\n", "not a finite number"),
+        ("1 0 0\n", "expected lines of `id x y z`"),
+        ("1 0 0 zero\n", "line 1 is neither numbers nor a header"),
+        ("1 0 0 0\n2 0 0 zero\n", "cannot read target file"),
+    ],
+)
+def test_bad_target_files_are_refused_with_the_reason(tmp_path, text, message):
+    path = tmp_path / "bad.txt"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        mc.targets.from_file(path)
+
+
+def test_every_target_has_ids_by_default():
+    assert mc.targets.box_corner().ids.tolist() == list(range(19))
+    with pytest.raises(ValueError, match="one per dot"):
+        mc.targets.Target("t", np.zeros((3, 3)), 1.0, np.arange(3), np.eye(4), ids=[1, 2])
+
+
+def test_dot_grids_and_plates():
+    grid = mc.targets.dot_grid(4, 3, 10.0)
+    assert grid.points.shape == (12, 3) and np.all(grid.points[:, 2] == 0)
+    assert grid.radii[0] == 2.0 and grid.points[-1].tolist() == [20.0, 30.0, 0.0]
+    asym = mc.targets.dot_grid(4, 3, 10.0, asymmetric=True)  # OpenCV's asymmetric circles grid
+    assert asym.points[3].tolist() == [5.0, 5.0, 0.0] and asym.points[6].tolist() == [0, 10, 0]
+    plate = mc.targets.plate(3, 4, 6.0, levels=(0.0, -1.0, -2.0))
+    levels = plate.points.reshape(3, 12, 3)
+    assert [set(level[:, 2]) for level in levels] == [{0.0}, {-1.0}, {-2.0}]
+    np.testing.assert_allclose(levels[1, :, :2] - levels[0, :, :2], 2.0)  # 6 / 3 levels
+    with pytest.raises(ValueError, match="rows, cols >= 2"):
+        mc.targets.dot_grid(1, 5, 1.0)
+
+
+def test_openptv_clicks_are_read_and_bad_ones_refused(tmp_path):
+    par, dat = tmp_path / "man_ori.par", tmp_path / "man_ori.dat"
+    par.write_text("2\n3\n71\n73\n1\n3\n69\n73\n")
+    dat.write_text("".join(f"{x} {x + 1}\n" for x in range(8)))
+    ids, pixels = mc.io.load_openptv_clicks(par, dat)
+    assert ids.tolist() == [[2, 3, 71, 73], [1, 3, 69, 73]] and pixels.shape == (2, 4, 2)
+    assert pixels[1, 0].tolist() == [3.5, 4.5]  # OpenPTV's pixel corner to mvcalib's centre
+    dat.write_text("1 2\n3 4\n")
+    with pytest.raises(ValueError, match="expected 8 lines"):
+        mc.io.load_openptv_clicks(par, dat)
+    par.write_text("2\n3\n71\n")
+    dat.write_text("1 2\n3 4\n5 6\n")
+    with pytest.raises(ValueError, match="not 4 per camera"):
+        mc.io.load_openptv_clicks(par, dat)
