@@ -32,7 +32,7 @@ _EXPORTS = {
     "_dlt": ("dlt",),
     "_images": ("ImageCalibration", "calibrate_images", "read_image"),
     "_label": ("Labels", "label_dots"),
-    "_match": ("match_dots",),
+    "_match": ("label_grid", "match_dots"),
     "_pipeline": ("Calibration", "CalibrationError", "calibrate"),
     "_planar": ("PlanarCalibration", "calibrate_planar"),
     "_refine": ("Cauchy", "Huber", "Refinement", "SecantLM", "refine"),
@@ -89,6 +89,7 @@ if typing.TYPE_CHECKING:
     from ._images import read_image as read_image
     from ._label import Labels as Labels
     from ._label import label_dots as label_dots
+    from ._match import label_grid as label_grid
     from ._match import match_dots as match_dots
     from ._pipeline import Calibration as Calibration
     from ._pipeline import CalibrationError as CalibrationError

@@ -30,7 +30,7 @@ from ._detect import Detection
 from ._label import Labels
 from .targets import Target
 
-__all__ = ["match_dots"]
+__all__ = ["label_grid", "match_dots"]
 
 # The first gate, as a fraction of the median distance between neighbouring predicted dots: a
 # blob farther than that from a dot's prediction would be nearer its neighbour's.
@@ -355,3 +355,150 @@ def match_dots(
                     str(int(i)) for i in target.ids[where[which]]
                 )
     return Labels.matched(blobs, index, rms, message)
+
+
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The homography `(3, 3)` taking `src (n, 2)` to `dst (n, 2)`, n >= 4, by the normalised
+    DLT (NumPy; a few dozen points on the host)."""
+
+    def normalise(p):
+        c = p.mean(0)
+        s = np.sqrt(2) / max(np.sqrt(np.mean(np.sum((p - c) ** 2, 1))), 1e-300)
+        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+
+    T1, T2 = normalise(src), normalise(dst)
+    a = src @ T1[:2, :2].T + T1[:2, 2]
+    b = dst @ T2[:2, :2].T + T2[:2, 2]
+    rows = []
+    for (x, y), (u, v) in zip(a, b):
+        rows.append([x, y, 1, 0, 0, 0, -u * x, -u * y, -u])
+        rows.append([0, 0, 0, x, y, 1, -v * x, -v * y, -v])
+    H = np.linalg.inv(T2) @ np.linalg.svd(np.asarray(rows))[2][-1].reshape(3, 3) @ T1
+    return H / H[2, 2]  # (the SVD's sign is arbitrary; points in front have h_3 > 0)
+
+
+def _cross(a, b) -> float:
+    """The z of the cross product of two 2-vectors."""
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    h = points @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(h[:, 2:] > 0, h[:, :2] / h[:, 2:], np.nan)
+
+
+def label_grid(detection: Detection, rows: int, cols: int, *, max_rounds: int = 30) -> Labels:
+    """Label the dots of a printed `rows x cols` grid (`mvcalib.targets.dot_grid`) with no seed:
+    the grid's topology from neighbouring blobs, grown by homographies; flagged rather than
+    guessed where the grid's position is not determined.
+
+    From the blob nearest the others' median, the two shortest independent displacements to its
+    neighbours give a lattice; its predictions through a homography fitted to the dots matched so
+    far (mutually nearest within 0.4 of the local spacing, then a few times the fit's RMS;
+    ambiguous ones dropped) grow it ring by ring until nothing changes. The lattice found must be
+    exactly `rows x cols` (or `cols x rows`) dots wide, else the view is flagged: with a whole row
+    or column missing at the border the grid's position is unknown. A symmetric grid is then
+    labelled up to its half turn: ids start at the corner nearest the image's top left, which
+    keeps a planar calibration (the board's pose absorbs the turn) but not the ids' identity
+    across cameras.
+
+    **Example:**
+
+    ```python
+    >>> import jax, numpy as np, mvcalib as mc
+    >>> grid = mc.targets.dot_grid(6, 9, 20.0)
+    >>> R = np.diag([1.0, -1.0, -1.0])
+    >>> camera = mc.Camera(1000.0, 1000.0, 480.0, 360.0, R, -R @ np.array([80.0, 50.0, 400.0]))
+    >>> image = mc.synthetic.render(camera, grid, (960, 720), key=0)
+    >>> labels = mc.label_grid(mc.detect_dots(image), 6, 9)
+    >>> labels.ok, int(labels.mask.sum())
+    (True, 54)
+
+    ```
+    """
+    blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
+    M, B = rows * cols, len(blobs)
+    if B < 6:
+        return Labels.failed(M, B, f"only {B} blobs found")
+    d = np.linalg.norm(blobs[:, None] - blobs[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    seed = int(np.argmin(np.linalg.norm(blobs - np.median(blobs, 0), axis=-1)))
+    order = np.argsort(d[seed])[:8]
+    a = blobs[order[0]] - blobs[seed]
+    b = next(
+        (blobs[k] - blobs[seed] for k in order[1:]
+         if abs(_cross(a, blobs[k] - blobs[seed])) > 0.7 * np.linalg.norm(a) * d[seed, k]),
+        None,
+    )  # fmt: skip
+    if b is None:
+        return Labels.failed(M, B, "no lattice around the central blob")
+    if _cross(a, b) > 0:  # the board's x, y as a camera in front of it sees them (y down)
+        b = -b
+    # the lattice near the seed, affine: (i, j) -> seed + i a + j b
+    H = np.array([[a[0], b[0], blobs[seed, 0]], [a[1], b[1], blobs[seed, 1]], [0.0, 0.0, 1.0]])
+    span, lattice, index, gate = 1, {}, None, np.inf
+    for _ in range(max_rounds):
+        ij = np.array(
+            [(i, j) for i in range(-span, span + 1) for j in range(-span, span + 1)], float
+        )
+        predicted = _apply(H, ij)
+        gate = min(gate, _FIRST_GATE * _spacing(predicted))
+        new = _mutual(predicted, blobs, gate)
+        found = new >= 0
+        if found.sum() < 6:
+            return Labels.failed(M, B, f"only {found.sum()} blobs form a lattice")
+        H = _homography(ij[found], blobs[new[found]])
+        # the gate shrinks to a few times the fit, so that clutter beside the grid stays out
+        residual = _apply(H, ij[found]) - blobs[new[found]]
+        gate = min(gate, max(_GATE_RMS * np.sqrt(np.mean(np.sum(residual**2, -1))), _MIN_GATE))
+        lattice = {tuple(ij[k].astype(int)): int(new[k]) for k in np.flatnonzero(found)}
+        keys = np.array(list(lattice))
+        grown = keys.min(0).min() > -span and keys.max(0).max() < span  # an empty ring: done
+        if grown and index is not None and lattice == index:
+            break
+        index = lattice
+        span = span + 1 if not grown else span
+    else:
+        return Labels.failed(M, B, f"the lattice did not settle in {max_rounds} rounds")
+    # At a steep angle the shortest displacements may be a diagonal of the grid: a lattice basis
+    # all the same, but sheared. Shear it back while that shrinks the box around the dots.
+    keys = np.array(list(lattice))
+    shears = [
+        np.array(m)
+        for m in ([[1, 1], [0, 1]], [[1, -1], [0, 1]], [[1, 0], [1, 1]], [[1, 0], [-1, 1]])
+    ]
+    area = lambda k: np.prod(k.max(0) - k.min(0) + 1)  # noqa: E731
+    for _ in range(max(rows, cols)):
+        best = min(shears, key=lambda m: area(keys @ m.T))
+        if area(keys @ best.T) >= area(keys):
+            break
+        keys = keys @ best.T
+    lattice = dict(zip(map(tuple, keys), lattice.values()))
+    lo, hi = keys.min(0), keys.max(0)
+    extent = tuple(hi - lo + 1)
+    if extent not in ((cols, rows), (rows, cols)):
+        return Labels.failed(
+            M, B, f"the lattice found is {extent[0]} x {extent[1]} dots, not {rows} x {cols}: "
+            + ("a border row or column is missing, so the grid's position is unknown"
+               if extent[0] * extent[1] < M else "blobs beside the grid joined it"),
+        )  # fmt: skip
+    # (i, j) -> (row, col): the lattice's longer side along the grid's longer side
+    i, j = (keys - lo).T
+    row, col = (j, i) if extent == (cols, rows) else (i, j)
+    ids = row * cols + col
+    if extent != (cols, rows):  # (a transposed lattice: mirror it back to the board's side)
+        ids = row * cols + (cols - 1 - col)
+    # of the grid's two half-turn labellings, the one with dot 0 nearest the image's top left
+    pixels = blobs[np.array(list(lattice.values()))]
+    turned = M - 1 - ids
+    if np.sum(pixels[np.argmin(turned)]) < np.sum(pixels[np.argmin(ids)]):
+        ids = turned
+    index = np.full(M, -1)
+    index[ids] = list(lattice.values())
+    P = _homography(np.c_[ids % cols, ids // cols].astype(float), pixels)  # grid units -> pixels
+    residual = _apply(P, np.c_[ids % cols, ids // cols].astype(float)) - pixels
+    rms = float(np.sqrt(np.mean(np.sum(residual**2, -1))))
+    return Labels.matched(
+        blobs, index, rms, f"{len(ids)} of {M} grid dots labelled, homography fit {rms:.2f} px"
+    )

@@ -210,3 +210,67 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     )  # fmt: skip
     assert out.returncode == 1 and "3 of 4 cameras calibrated" in out.stdout, out.stdout
     assert "cam2.tif: cannot be read as an image" in out.stderr, out.stderr
+
+
+# ------------------------------------------------------------------------ printed dot grids
+GRID = mc.targets.dot_grid(9, 12, 20.0)  # 220 x 160 mm, dots 8 mm wide
+K_TRUE = (1400.0, 1400.0, 639.5, 479.5)
+
+
+def grid_view(seed, tilt_deg):
+    """A camera looking at the grid's centre from `tilt_deg` off its normal, any azimuth and
+    roll, at the distance that keeps the whole grid inside a 1280 x 960 image."""
+    rng = np.random.default_rng(seed)
+    centre = GRID.points.mean(0)
+    tilt, azimuth, roll = np.deg2rad(tilt_deg), rng.uniform(0, 2 * np.pi), rng.uniform(-0.5, 0.5)
+    direction = np.array(
+        [np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)]
+    )
+    position = centre + rng.uniform(420.0, 480.0) * direction
+    z = (centre - position) / np.linalg.norm(centre - position)
+    x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R0 = np.stack([x, y, z])
+    spin = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+    R = spin @ R0
+    return mc.Camera(*K_TRUE, R, -R @ position)
+
+
+def test_dot_grids_are_labelled_without_clicks_and_calibrate_a_camera():
+    """Issue 41: 5 % of the dots hidden, clutter, up to 60 degrees of tilt: every view right (up
+    to the symmetric grid's half turn) or flagged, none wrong; calibrate_planar from the photos
+    recovers the intrinsics."""
+    counts = {"right": 0, "flagged": 0, "wrong": 0}
+    pixels, masks = [], []
+    M = len(GRID)
+    for seed, tilt in enumerate(np.linspace(0.0, 60.0, 12)):
+        camera = grid_view(seed, tilt)
+        hidden = np.random.default_rng(100 + seed).choice(M, int(0.05 * M), replace=False)
+        image = mc.synthetic.render(camera, GRID, (1280, 960), clutter=10, hidden=hidden, key=seed)
+        labels = mc.label_grid(mc.detect_dots(image), 9, 12)
+        truth = np.asarray(camera.project(GRID.points))
+        if not labels.ok:
+            counts["flagged"] += 1
+            continue
+        seen = labels.mask
+        right = [np.abs(labels.pixels[seen] - t[seen]).max() < 1.5 for t in (truth, truth[::-1])]
+        counts["right" if any(right) else "wrong"] += 1
+        if any(right):
+            pixels.append(np.nan_to_num(labels.pixels))
+            masks.append(seen)
+    print(counts)
+    assert counts["wrong"] == 0 and counts["right"] >= 11, counts  # measured: 12 of 12
+    pixels, masks = np.stack(pixels), np.stack(masks)
+    out = mc.calibrate_planar(GRID.points, pixels, masks, distortion=())
+    found = [float(getattr(out.camera, k)[0]) for k in ("alpha_u", "alpha_v", "u0", "v0")]
+    error = np.abs(np.array(found) - K_TRUE) / K_TRUE[0]
+    print(f"intrinsics error {error.round(5)} of the focal length, RMS {float(out.rms):.3f} px")
+    assert error.max() < 0.002
+
+
+def test_a_grid_with_a_missing_border_row_is_flagged():
+    camera = grid_view(0, 20.0)
+    image = mc.synthetic.render(camera, GRID, (1280, 960), hidden=range(0, 12), key=0)
+    labels = mc.label_grid(mc.detect_dots(image), 9, 12)
+    assert not labels.ok and "8 x 12" in labels.message or "12 x 8" in labels.message
