@@ -220,3 +220,11 @@ def test_readme_sharding_splits_the_cameras(readme):
     run = readme.python(_block_with("mc.shard("))
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "2 True [(32, 3, 4), (32, 3, 4)]"
+
+
+def test_the_api_table_names_every_public_name():
+    import mvcalib
+
+    text = README.read_text()
+    missing = [name for name in mvcalib.__all__ if f"`{name}`" not in text]
+    assert not missing, f"README does not name {missing}"
