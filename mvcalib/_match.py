@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _dlt, _label
+from . import _label
 from ._camera import Camera
 from ._detect import Detection
 from ._label import Labels
@@ -86,22 +86,6 @@ def _intrinsics(focal, principal_point, detection: Detection) -> np.ndarray | No
     return np.array([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
 
 
-def _dlt_any_fit(world, pixels, found) -> np.ndarray:
-    """The DLT `P (3, 4)` of the matched dots, however poorly they fit (the caller trims wrong
-    matches by their residuals); NaN only if degenerate."""
-    import jax.numpy as jnp
-
-    dtype = jnp.result_type(float)
-    P, *_ = _dlt.solve_validated(
-        jnp.asarray(world, dtype),
-        jnp.asarray(pixels, dtype),
-        jnp.asarray(found),
-        _dlt.default_rcond(dtype),
-        np.inf,
-    )
-    return np.asarray(P, dtype=np.float64)
-
-
 def _guessed_intrinsics(P: np.ndarray) -> np.ndarray | None:
     """`K` of a camera `P` (zero skew), or None if it does not decompose."""
     import jax.numpy as jnp
@@ -149,7 +133,8 @@ def _fit(world, pixels, found, K, pose):
     """The camera of the matched dots: the DLT where they determine one, else the pose for the
     focal guess; `(P, pose, rms)` or None."""
     if found.sum() >= 6 and not _coplanar(world[found]):
-        P = _dlt_any_fit(world, np.where(found[:, None], pixels, 0.0), found)
+        # (however poorly they fit: `_trimmed_fit` drops wrong matches by their residuals)
+        P = _label._fit(world, np.where(found[:, None], pixels, 0.0), found, np.inf)  # noqa: SLF001
         if np.isfinite(P).all():
             residual = _label._project(P, world)[found] - pixels[found]  # noqa: SLF001
             return P, None, float(np.sqrt(np.nanmean(np.sum(residual**2, -1))))
@@ -357,16 +342,19 @@ def match_dots(
     return Labels.matched(blobs, index, rms, message)
 
 
+def _similarity(points: np.ndarray) -> np.ndarray:
+    """Hartley's normalising similarity `(3, 3)` of `points (n, 2)` (`_label._normalise`)."""
+    _, s, c = _label._normalise(points)  # noqa: SLF001
+    s, (cx, cy) = float(np.squeeze(s)), c.reshape(2)
+    return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
+
+
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """The homography `(3, 3)` taking `src (n, 2)` to `dst (n, 2)`, n >= 4, by the normalised
-    DLT (NumPy; a few dozen points on the host)."""
-
-    def normalise(p):
-        c = p.mean(0)
-        s = np.sqrt(2) / max(np.sqrt(np.mean(np.sum((p - c) ** 2, 1))), 1e-300)
-        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
-
-    T1, T2 = normalise(src), normalise(dst)
+    DLT (NumPy: a few dozen points on the host, no compile; `_planar._homography_kernel` is the
+    batched, differentiable one).
+    """
+    T1, T2 = _similarity(src), _similarity(dst)
     a = src @ T1[:2, :2].T + T1[:2, 2]
     b = dst @ T2[:2, :2].T + T2[:2, 2]
     rows = []
