@@ -928,7 +928,10 @@ def _calibrate_images(args) -> int:
     from ._images import calibrate_images
 
     target = targets.from_file(args.target) if args.target else targets.box_corner()
-    seeds = _clicks(args.clicks, args.images, target) if args.clicks else None
+    try:  # (a bad clicks file is a failed run, exit 1, as a bad photo is)
+        seeds = io.load_clicks(args.clicks, args.images, target) if args.clicks else None
+    except ValueError as error:
+        raise _Failed(str(error)) from None
     result = calibrate_images(
         args.images,
         target,
@@ -950,43 +953,6 @@ def _calibrate_images(args) -> int:
     n_ok = int(result.ok.sum())
     print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
     return 0 if n_ok == len(result.names) else 1
-
-
-def _clicks(path, images, target) -> list:
-    """The clicks file as one seed per image, `(pixels, dot_ids)` or None; `_Failed` with the
-    line for a row that names an unknown image or dot."""
-    import csv
-
-    import numpy as np
-
-    rows: dict[int, list] = {}
-    names = [pathlib.Path(p).name for p in images]
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        needed = {"image", "dot_id", "pixel_x", "pixel_y"}
-        if not needed <= set(reader.fieldnames or ()):
-            raise _Failed(f"{path}: the header must name image,dot_id,pixel_x,pixel_y")
-        for line, row in enumerate(reader, start=2):
-            image = row["image"].strip()
-            if image in images or image in names:
-                i = images.index(image) if image in images else names.index(image)
-            elif image.isdigit() and int(image) < len(images):
-                i = int(image)
-            else:
-                raise _Failed(f"{path}, line {line}: no image {image!r} among the images given")
-            try:
-                dot, x, y = int(row["dot_id"]), float(row["pixel_x"]), float(row["pixel_y"])
-            except ValueError:
-                message = f"{path}, line {line}: dot_id must be an integer, pixels numbers"
-                raise _Failed(message) from None
-            if dot not in set(target.ids.tolist()):
-                raise _Failed(f"{path}, line {line}: the target has no dot {dot}")
-            rows.setdefault(i, []).append((dot, x, y))
-    seeds = [None] * len(images)
-    for i, clicked in rows.items():
-        clicked = np.asarray(clicked, dtype=float)
-        seeds[i] = (clicked[:, 1:], clicked[:, 0].astype(int))
-    return seeds
 
 
 def _demo(args) -> int:

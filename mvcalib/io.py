@@ -28,7 +28,7 @@ __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
     "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
     "load_correspondences", "Observations", "save_observations", "load_observations",
-    "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
+    "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks", "load_clicks",
     "load_openptv_calibration",
 ]  # fmt: skip
 
@@ -1248,6 +1248,53 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
         fields.append((K, R, t, np.pad(dist, (0, 5 - len(dist)))))
     K, R, t, dist = (np.stack(f) for f in zip(*fields))
     return Camera.from_matrices(K, R, t, dist), [f"cam_{k}" for k in keys]
+
+
+def load_clicks(path, images, target) -> list:
+    """Clicked seeds from a CSV file with the header `image,dot_id,pixel_x,pixel_y` (other
+    columns ignored): `image` names one of `images` (its path as given, its file name, or its
+    position from 0), `dot_id` a dot of `target` (`target.ids`). Returns one seed per image for
+    `mvcalib.calibrate_images` / `mvcalib.match_dots`: `(pixels (k, 2), dot_ids (k,))`, or None
+    for an image without clicks. `ValueError` naming the file and line for an unknown image or
+    dot, or a field that is not a number.
+
+    **Example:**
+
+    ```python
+    >>> import pathlib, tempfile, mvcalib as mc
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "clicks.csv"
+    >>> _ = path.write_text("image,dot_id,pixel_x,pixel_y\\nb.png,3,10.5,20\\n")
+    >>> seeds = mc.io.load_clicks(path, ["a.png", "b.png"], mc.targets.box_corner())
+    >>> seeds[0], seeds[1][0].tolist(), seeds[1][1].tolist()
+    (None, [[10.5, 20.0]], [3])
+
+    ```
+    """
+    columns, table = _csv_table(path, ("image", "dot_id", "pixel_x", "pixel_y"), strict=False)
+    images = [str(p) for p in images]
+    names = [pathlib.Path(p).name for p in images]
+    clicked: dict[int, list] = {}
+    for line, fields in table:
+        where = f"{path}, line {line}"
+        image = fields[columns["image"]]
+        if image in images or image in names:
+            i = images.index(image) if image in images else names.index(image)
+        elif image.isdigit() and int(image) < len(images):
+            i = int(image)
+        else:
+            raise ValueError(f"{where}: no image {image!r} among the images given")
+        dot = _parse_id(where, "dot_id", fields[columns["dot_id"]])
+        xy = _parse_numbers(
+            where, ("pixel_x", "pixel_y"),
+            (fields[columns["pixel_x"]], fields[columns["pixel_y"]]), blank_ok=False,
+        )  # fmt: skip
+        if dot is None or dot not in target.ids:
+            raise ValueError(f"{where}: the target has no dot {dot}")
+        clicked.setdefault(i, []).append((xy, dot))
+    seeds = [None] * len(images)
+    for i, rows in clicked.items():
+        seeds[i] = (np.array([xy for xy, _ in rows]), np.array([dot for _, dot in rows]))
+    return seeds
 
 
 def load_openptv_clicks(man_ori_par, man_ori_dat) -> tuple[np.ndarray, np.ndarray]:
