@@ -1,4 +1,5 @@
-"""The camera model: pinhole intrinsics with skew, a rigid pose, Brown–Conrady distortion."""
+"""The camera model: intrinsics with skew, a rigid pose and a lens: a pinhole with Brown–Conrady
+distortion, or a fisheye with Kannala–Brandt's (equidistant) model."""
 
 from __future__ import annotations
 
@@ -13,14 +14,38 @@ from jaxtyping import Array, Bool, Float
 from . import _small, _validate
 from ._rotation import nearest_rotation
 
+# The lens models and their distortion coefficients, in OpenCV's order (`cv2` and `cv2.fisheye`).
+LENSES = {"pinhole": ("k1", "k2", "p1", "p2", "k3"), "fisheye": ("k1", "k2", "k3", "k4")}
+
+
+def lens_of(dist) -> str:
+    """The lens of a camera with these distortion coefficients `(..., 5)` or `(..., 4)`: inside
+    the library's kernels, where cameras are rebuilt from packed parameter vectors, the number
+    of coefficients carries the (static) lens."""
+    return "fisheye" if dist.shape[-1] == len(LENSES["fisheye"]) else "pinhole"
+
 
 class Camera(eqx.Module):
-    """A pinhole camera; a rig is one `Camera` whose fields carry a leading camera axis.
+    """A camera; a rig is one `Camera` whose fields carry a leading camera axis.
 
-    A world point `X` maps to camera coordinates `x_cam = R @ X + t`, to normalised coordinates
-    `(x, y) = x_cam[:2] / x_cam[2]`, through the lens distortion, and to pixels
+    A world point `X` maps to camera coordinates `x_cam = R @ X + t`, through the lens to
+    distorted normalised coordinates `(x_d, y_d)`, and to pixels
     `u = alpha_u * x_d + skew * y_d + u0`, `v = alpha_v * y_d + v0`. Pixels are `(x = column,
     y = row)` with the origin at the centre of the top-left pixel (OpenCV's convention).
+
+    The lens is a static choice, so that a rig of one model is one batched pytree (a mixed rig
+    is a list of rigs):
+
+    - `"pinhole"` (default): `(x, y) = x_cam[:2] / x_cam[2]` with Brown–Conrady distortion
+      `dist = (k1, k2, p1, p2, k3)`, OpenCV's `cv2.projectPoints` (see `distort`).
+    - `"fisheye"`: Kannala–Brandt's equidistant model of `cv2.fisheye`, `dist = (k1, k2, k3, k4)`:
+      `theta` is the angle between the ray and the optical axis,
+      `theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`, and
+      `(x_d, y_d) = theta_d (x_cam[0], x_cam[1]) / |(x_cam[0], x_cam[1])|`. `theta` is the ray's
+      own angle, `atan2(|(x_cam[0], x_cam[1])|, x_cam[2])`, so points beside or behind the image
+      plane (up to 180 degrees off axis) project where the lens puts them; OpenCV takes
+      `atan(r)` of `x_cam[:2] / x_cam[2]` and mirrors points beyond 90 degrees. (OpenCV's skew
+      `alpha` is `skew / alpha_u` here.)
 
     **Arguments:**
 
@@ -28,8 +53,11 @@ class Camera(eqx.Module):
     - `u0`, `v0`: principal point in pixels, `(*batch,)`.
     - `R`: world-to-camera rotation `(*batch, 3, 3)`; `t`: translation `(*batch, 3)`.
     - `skew`: the K[0, 1] entry, `(*batch,)`; zero by default (the paper's model).
-    - `dist`: Brown–Conrady coefficients `(k1, k2, p1, p2, k3)` in OpenCV's order, `(*batch, 5)`;
-      zeros by default (the paper neglects distortion).
+    - `dist`: the lens's distortion coefficients in OpenCV's order, `(*batch, 5)` Brown–Conrady
+      `(k1, k2, p1, p2, k3)` for a pinhole, `(*batch, 4)` `(k1, k2, k3, k4)` for a fisheye; zeros
+      by default (the paper neglects distortion; a fisheye with zeros is the ideal equidistant
+      lens, `r = f theta`).
+    - `lens`: `"pinhole"` or `"fisheye"` (see above); a static field.
 
     **Example:**
 
@@ -50,9 +78,13 @@ class Camera(eqx.Module):
     skew: Float[Array, "*batch"]
     R: Float[Array, "*batch 3 3"]
     t: Float[Array, "*batch 3"]
-    dist: Float[Array, "*batch 5"]
+    dist: Float[Array, "*batch K"]
+    lens: str = eqx.field(static=True, default="pinhole")
 
-    def __init__(self, alpha_u, alpha_v, u0, v0, R, t, skew=None, dist=None):
+    def __init__(self, alpha_u, alpha_v, u0, v0, R, t, skew=None, dist=None, lens="pinhole"):
+        if lens not in LENSES:
+            raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+        names = LENSES[lens]
         alpha_u, alpha_v, u0, v0 = (jnp.asarray(a) for a in (alpha_u, alpha_v, u0, v0))
         R, t = jnp.asarray(R), jnp.asarray(t)
         batch = jnp.broadcast_shapes(
@@ -62,11 +94,14 @@ class Camera(eqx.Module):
         if skew is None:
             skew = jnp.zeros(batch, dtype)
         if dist is None:
-            dist = jnp.zeros((*batch, 5), dtype)
+            dist = jnp.zeros((*batch, len(names)), dtype)
         dist = jnp.asarray(dist, dtype)
-        if dist.shape[-1:] != (5,):
+        if dist.shape[-1:] != (len(names),):
+            other = [k for k, v in LENSES.items() if dist.shape[-1:] == (len(v),)]
+            hint = f" (the coefficients of lens={other[0]!r}?)" if other else ""
             raise ValueError(
-                f"`dist` holds (k1, k2, p1, p2, k3), shape (..., 5); got {tuple(dist.shape)}."
+                f"`dist` of a {lens} camera holds ({', '.join(names)}), shape (..., "
+                f"{len(names)}); got {tuple(dist.shape)}{hint}."
             )
 
         def cast(x, shape):
@@ -79,7 +114,8 @@ class Camera(eqx.Module):
         self.skew = cast(skew, batch)
         self.R = cast(R, (*batch, 3, 3))
         self.t = cast(t, (*batch, 3))
-        self.dist = cast(dist, (*batch, 5))
+        self.dist = cast(dist, (*batch, len(names)))
+        self.lens = lens
 
     # ------------------------------------------------------------------ derived quantities
     @property
@@ -139,15 +175,51 @@ class Camera(eqx.Module):
         One target seen by a rig of C cameras: `world` `(N, 3)` gives pixels `(C, N, 2)`.
         """
         world = _validate.floating("world", world, (None, 3))
-        xc = self._camera_coordinates(world)
-        xd, yd = _distort(xc[0] / xc[2], xc[1] / xc[2], self.dist[..., None, :])
+        xd, yd = _lens(self._camera_coordinates(world), self.dist[..., None, :])
         u = self.alpha_u[..., None] * xd + self.skew[..., None] * yd + self.u0[..., None]
         v = self.alpha_v[..., None] * yd + self.v0[..., None]
         return jnp.stack([u, v], -1)
 
+    def rays(self, pixels, *, iterations: int = 20) -> Float[Array, "*batch N 3"]:
+        """Unit directions in camera coordinates of the rays through `pixels` `(..., N, 2)`: the
+        inverse of `project` up to depth, for any angle the lens takes in (a fisheye's beyond 90
+        degrees too: `z < 0`, which `undistort_points` cannot express). The lens is inverted by
+        Newton's method (as in `undistort_points`); differentiable.
+
+        **Example:**
+
+        ```python
+        >>> import jax.numpy as jnp, numpy as np, mvcalib as mc
+        >>> cam = mc.Camera(300.0, 300.0, 640.0, 480.0, jnp.eye(3), jnp.zeros(3), lens="fisheye")
+        >>> ray = cam.rays(cam.project(jnp.array([[1.0, 0.0, -0.2]])))
+        >>> np.round(np.asarray(ray) * np.hypot(1.0, 0.2), 6).tolist()  # 101 degrees off axis
+        [[1.0, 0.0, -0.2]]
+
+        ```
+        """
+        px = _validate.floating("pixels", pixels, (None, 2))
+        xd, yd = self._distorted_normalised(px)
+        dist = jnp.broadcast_to(self.dist[..., None, :], (*xd.shape, self.dist.shape[-1]))
+        if self.lens == "fisheye":
+            theta_d = jnp.sqrt(xd * xd + yd * yd)
+            theta = _fisheye_angle(theta_d, dist, iterations)
+            # sin(theta) / theta_d -> 1 on the axis (theta ~ theta_d there)
+            positive = theta_d > 0
+            scale = jnp.where(positive, jnp.sin(theta) / jnp.where(positive, theta_d, 1.0), 1.0)
+            return jnp.stack([xd * scale, yd * scale, jnp.cos(theta)], -1)
+        xy = _undistort(jnp.stack([xd, yd], -1), dist, iterations)
+        ray = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], -1)
+        return ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
+
+    def _distorted_normalised(self, px):
+        """`K^-1` of pixels `(..., N, 2)`: the distorted normalised coordinates `(x_d, y_d)`."""
+        yd = (px[..., 1] - self.v0[..., None]) / self.alpha_v[..., None]
+        xd = (px[..., 0] - self.u0[..., None] - self.skew[..., None] * yd) / self.alpha_u[..., None]
+        return xd, yd
+
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_matrices(cls, K, R, t, dist=None) -> Camera:
+    def from_matrices(cls, K, R, t, dist=None, lens="pinhole") -> Camera:
         """A camera from `K` (upper triangular, `K[2, 2] = 1`), `R` and `t` as arrays."""
         K = jnp.asarray(K)
         K = K / K[..., 2:3, 2:3]
@@ -160,6 +232,7 @@ class Camera(eqx.Module):
             R=R,
             t=t,
             dist=dist,
+            lens=lens,
         )
 
     @classmethod
@@ -227,10 +300,11 @@ def usable_rig(cameras: Camera, mask: Bool[Array, "*batch C N"], stand_in: Camer
     return where_cameras(usable, cameras, stand_in), mask & usable[:, None], usable
 
 
-def unit_camera(dtype) -> Camera:
+def unit_camera(dtype, lens: str = "pinhole") -> Camera:
     """A finite camera: unit focal lengths, at the origin, looking along z from z = -1."""
     one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-    return Camera(one, one, zero, zero, jnp.eye(3, dtype=dtype), jnp.array([0.0, 0.0, 1.0], dtype))
+    t = jnp.array([0.0, 0.0, 1.0], dtype)
+    return Camera(one, one, zero, zero, jnp.eye(3, dtype=dtype), t, lens=lens)
 
 
 @functools.partial(jax.jit, static_argnames="skew")
@@ -320,6 +394,58 @@ def _distort(x, y, dist):
     return xd, yd
 
 
+def _lens(xc, dist):
+    """Camera coordinates `[X, Y, Z]` (arrays) to distorted normalised `(x_d, y_d)` through the
+    lens that `dist`'s number of coefficients names (`lens_of`)."""
+    if lens_of(dist) == "fisheye":
+        return _fisheye(*xc, dist)
+    return _distort(xc[0] / xc[2], xc[1] / xc[2], dist)
+
+
+def _fisheye_polynomial(theta, dist):
+    """`theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)` and its derivative
+    in `theta`."""
+    k1, k2, k3, k4 = (dist[..., i] for i in range(4))
+    t2 = theta * theta
+    theta_d = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    slope = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+    return theta_d, slope
+
+
+def _fisheye(X, Y, Z, dist):
+    """Kannala–Brandt: `(x_d, y_d) = theta_d (X, Y) / rho`, `theta = atan2(rho, Z)`, `rho` the
+    distance from the optical axis. On the axis `theta_d / rho` is its limit `1 / Z`; the `where`s
+    keep the derivative finite there."""
+    r2 = X * X + Y * Y
+    on_axis = r2 == 0
+    rho = jnp.sqrt(jnp.where(on_axis, 1.0, r2))
+    theta_d, _ = _fisheye_polynomial(jnp.arctan2(rho, Z), dist)
+    scale = jnp.where(on_axis, 1.0 / Z, theta_d / rho)
+    return X * scale, Y * scale
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _fisheye_angle(theta_d, dist, iterations):
+    """The ray's angle `theta` with `_fisheye_polynomial(theta) = theta_d`: Newton's method from
+    `theta_d`, a fixed number of steps, clipped to `[0, pi]`; the derivative is the exact
+    inverse's (implicit), as for `_undistort`."""
+
+    def newton(theta, _):
+        value, slope = _fisheye_polynomial(theta, dist)
+        return jnp.clip(theta - (value - theta_d) / slope, 0.0, jnp.pi), None
+
+    return jax.lax.scan(newton, theta_d, None, length=iterations)[0]
+
+
+@_fisheye_angle.defjvp
+def _fisheye_angle_jvp(iterations, primals, tangents):
+    (theta_d, dist), (d_theta_d, d_dist) = primals, tangents
+    theta = _fisheye_angle(theta_d, dist, iterations)
+    value = lambda dist: _fisheye_polynomial(theta, dist)[0]  # noqa: E731
+    by_dist = jax.jvp(value, (dist,), (d_dist,))[1]
+    return theta, (d_theta_d - by_dist) / _fisheye_polynomial(theta, dist)[1]
+
+
 def _distortion_jacobian(x, y, dist):
     """The 2 x 2 Jacobian `[[a, b], [b, d]]` of `_distort` at `(x, y)` (it is symmetric), in
     closed form: elementwise work, not a batched LAPACK solve per point (30x faster on CPU)."""
@@ -369,11 +495,13 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     """Remove `camera`'s lens distortion from observed pixels (the inverse of `distort`).
 
     Returns the pixels an ideal pinhole camera with the same `K` would have seen, like
-    `cv2.undistortPoints(pixels, K, dist, P=K)`. Solved per point by Newton's method on the
-    2 x 2 distortion Jacobian, starting from the distorted point, for a fixed number of
-    iterations (static shapes); `pixels` is `(..., N, 2)` and broadcasts against the camera's
-    batch shape. Differentiable: the derivative is that of the exact inverse (implicit, from the
-    Jacobian at the answer), not of the iterations.
+    `cv2.undistortPoints(pixels, K, dist, P=K)` (`cv2.fisheye.undistortPoints` for a fisheye).
+    Solved per point by Newton's method on the 2 x 2 distortion Jacobian (a fisheye's: on the
+    ray's angle), starting from the distorted point, for a fixed number of iterations (static
+    shapes); `pixels` is `(..., N, 2)` and broadcasts against the camera's batch shape.
+    Differentiable: the derivative is that of the exact inverse (implicit, from the Jacobian at
+    the answer), not of the iterations. A fisheye's rays at 90 degrees or more off axis have no
+    pinhole pixel: NaN (`Camera.rays` gives every ray).
 
     **Example:**
 
@@ -388,16 +516,14 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     ```
     """
     px = _validate.floating("pixels", pixels, (None, 2))
-    dist = camera.dist[..., None, :]
-    # normalised distorted coordinates: invert K (upper triangular)
-    yd = (px[..., 1] - camera.v0[..., None]) / camera.alpha_v[..., None]
-    xd = (px[..., 0] - camera.u0[..., None] - camera.skew[..., None] * yd) / camera.alpha_u[
-        ..., None
-    ]
-    target = jnp.stack([xd, yd], -1)
-    dist = jnp.broadcast_to(dist, (*target.shape[:-1], 5))
-
-    xy = _undistort(target, dist, iterations)
+    if camera.lens == "fisheye":
+        ray = camera.rays(px, iterations=iterations)
+        front = ray[..., 2:] > 0  # beside or behind the image plane: no pinhole pixel
+        xy = jnp.where(front, ray[..., :2] / jnp.where(front, ray[..., 2:], 1.0), jnp.nan)
+    else:
+        target = jnp.stack(camera._distorted_normalised(px), -1)
+        dist = jnp.broadcast_to(camera.dist[..., None, :], (*target.shape[:-1], 5))
+        xy = _undistort(target, dist, iterations)
     u = camera.alpha_u[..., None] * xy[..., 0] + camera.skew[..., None] * xy[..., 1]
     v = camera.alpha_v[..., None] * xy[..., 1] + camera.v0[..., None]
     return jnp.stack([u + camera.u0[..., None], v], -1)
