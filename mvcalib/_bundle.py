@@ -20,7 +20,6 @@ from . import _sharding, _small, _triangulate, _validate
 from ._camera import Camera, finite_cameras, usable_rig, where_cameras
 from ._refine import (
     _RESULT_MESSAGES,
-    DISTORTION,
     PARAMETERS,
     Cauchy,
     Huber,
@@ -37,12 +36,10 @@ from ._registration import RigidTransform
 from ._report import masked_rms
 from ._rotation import rodrigues
 
-# Indices into PARAMETERS: the intrinsics with distortion (shared by `shared_intrinsics`), and
-# the translation's first entry, whose scale (the camera's distance) sets the units of the
-# placement and of the points.
-_INTRINSICS = tuple(
-    PARAMETERS.index(n) for n in ("alpha_u", "alpha_v", "u0", "v0", "skew", *DISTORTION)
-)
+# Indices into the packed parameters (`parameter_names`, either lens): the pose (the rest are the
+# intrinsics with the distortion, shared by `shared_intrinsics`), and the translation's first
+# entry, whose scale (the camera's distance) sets the units of the placement and of the points.
+_POSE = tuple(PARAMETERS.index(n) for n in ("rx", "ry", "rz", "tx", "ty", "tz"))
 _DISTANCE = PARAMETERS.index("tx")
 
 
@@ -128,7 +125,7 @@ def refine_rig(
     anchor_sigma: float = 1.0,
     points: str = "fixed",
     shared_intrinsics: bool = False,
-    distortion: Sequence[str] | str = ("k1", "k2", "p1", "p2"),
+    distortion: Sequence[str] | str | None = None,
     fix: Sequence[str] | str = (),
     skew: bool = False,
     loss: Huber | Cauchy | None = None,
@@ -204,11 +201,11 @@ def refine_rig(
                 "`anchors` = (ids, global_xyz) with >= 3 ids and xyz of shape (ids, 3)."
             )
     transform = RigidTransform.identity(dtype) if transform is None else transform
-    free = _free_parameters(distortion, fix, skew)
+    free = _free_parameters(distortion, fix, skew, cameras.lens)
     cameras = _skew_model(cameras, skew, fix)
     shared = bool(shared_intrinsics)
-    cam_free = tuple(i for i in free if not (shared and i in _INTRINSICS))
-    shared_free = tuple(i for i in free if shared and i in _INTRINSICS)
+    cam_free = tuple(i for i in free if not (shared and i not in _POSE))
+    shared_free = tuple(i for i in free if shared and i not in _POSE)
 
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     # A camera without a finite seed (one that `calibrate` could not solve is NaN) takes no

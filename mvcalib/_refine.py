@@ -18,15 +18,22 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _buckets, _sharding, _small, _validate
-from ._camera import Camera, unit_camera, usable_rig
+from ._camera import LENSES, Camera, _fisheye_polynomial, lens_of, unit_camera, usable_rig
 from ._report import ReprojectionReport, compute_report, masked_rms
 from ._rotation import exp_and_left_jacobian
 
-PARAMETERS = (
-    "alpha_u", "alpha_v", "u0", "v0", "skew",
-    "rx", "ry", "rz", "tx", "ty", "tz",
-    "k1", "k2", "p1", "p2", "k3",
-)  # fmt: skip
+
+def parameter_names(lens: str = "pinhole") -> tuple[str, ...]:
+    """The names of a camera's packed parameters, in order: intrinsics, axis-angle rotation
+    increment, translation, and the lens's distortion coefficients (`Camera`)."""
+    head = ("alpha_u", "alpha_v", "u0", "v0", "skew", "rx", "ry", "rz", "tx", "ty", "tz")
+    return head + LENSES[lens]
+
+
+PARAMETERS = parameter_names("pinhole")
+# What `refine` estimates of each lens's distortion by default: OpenCV's defaults (cv2 without
+# k3, which overfits; cv2.fisheye all four).
+DEFAULT_DISTORTION = {"pinhole": ("k1", "k2", "p1", "p2"), "fisheye": ("k1", "k2", "k3", "k4")}
 GROUPS = {
     "focal": ("alpha_u", "alpha_v"),
     "principal_point": ("u0", "v0"),
@@ -34,9 +41,9 @@ GROUPS = {
     "rotation": ("rx", "ry", "rz"),
     "translation": ("tx", "ty", "tz"),
     "pose": ("rx", "ry", "rz", "tx", "ty", "tz"),
-    "distortion": ("k1", "k2", "p1", "p2", "k3"),
+    "distortion": LENSES["pinhole"],  # (a fisheye's: its own, `_free_parameters`)
 }
-DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+DISTORTION = LENSES["pinhole"]
 
 
 # ------------------------------------------------------------------------------ robust losses
@@ -398,7 +405,7 @@ def _unpack(p, R0) -> Camera:
     # The rotation is a small axis-angle increment applied to the seed's R: minimal (3 numbers),
     # well away from the singularities of any global parametrisation, and exactly R0 at 0.
     R = jnp.stack([jnp.stack(row, -1) for row in exp_and_left_jacobian(p[5:8], R0)[0]], -2)
-    return Camera(p[0], p[1], p[2], p[3], R, p[8:11], skew=p[4], dist=p[11:])
+    return Camera(p[0], p[1], p[2], p[3], R, p[8:11], skew=p[4], dist=p[11:], lens=lens_of(p[11:]))
 
 
 @jax.custom_jvp
@@ -429,18 +436,39 @@ def _pixel_jacobian(p, R0, world):
 
 
 def _pixel_columns(p, R0, world, mask=None):
-    """`d _pixels / d p` as 16 columns `(du / dp_k, dv / dp_k)`, each `(N,)`: the chain rule of
-    `Camera.project`, entry by entry; and `d _pixels / d world` as rows `[du / dX_j]`,
-    `[dv / dX_j]` (unused entries cost nothing: XLA drops them). With a `mask`, hidden points are
-    taken on the optical axis, so that whatever their coordinates, nothing is NaN."""
+    """`d _pixels / d p` as 16 columns (15 for a fisheye) `(du / dp_k, dv / dp_k)`, each `(N,)`:
+    the chain rule of `Camera.project`, entry by entry, through the lens (`_pinhole_columns`,
+    `_fisheye_columns`); and `d _pixels / d world` as rows `[du / dX_j]`, `[dv / dX_j]` (unused
+    entries cost nothing: XLA drops them). With a `mask`, hidden points are taken on the optical
+    axis, so that whatever their coordinates, nothing is NaN."""
     au, av, s = p[0], p[1], p[4]
-    k1, k2, p1, p2, k3 = (p[i] for i in range(11, 16))
     R, J = exp_and_left_jacobian(p[5:8], R0)
     X = [world[:, i] for i in range(3)]
     m = [R[i][0] * X[0] + R[i][1] * X[1] + R[i][2] * X[2] for i in range(3)]  # R X
     xc = [m[i] + p[8 + i] for i in range(3)]
     if mask is not None:
         xc = [jnp.where(mask, c, float(i == 2)) for i, c in enumerate(xc)]
+    if lens_of(p[11:]) == "fisheye":
+        xd, yd, dxy_dc, dxd, dyd = _fisheye_columns(xc, p[11:])
+        duv_dc = [[au * a + s * b for a, b in zip(*dxy_dc)], [av * b for b in dxy_dc[1]]]
+    else:
+        xd, yd, duv_dc, dxd, dyd = _pinhole_columns(xc, p[11:], au, av, s)
+    zero, one = jnp.zeros_like(xd), jnp.ones_like(xd)
+    columns = [(xd, zero), (zero, yd), (one, zero), (zero, one), (yd, zero)]
+    # rotation increments: d(u, v) / d w_k = g . ((J e_k) x m) = (J e_k) . (m x g), g a row of
+    # duv_dc (XLA computes each m x g once)
+    J = [[row[k] for row in J] for k in range(3)]  # its columns
+    columns += [tuple(_small.triple(J[k], m, g) for g in duv_dc) for k in range(3)]
+    columns += [(duv_dc[0][k], duv_dc[1][k]) for k in range(3)]  # translation
+    columns += [(au * a + s * b, av * b) for a, b in zip(dxd, dyd)]  # distortion
+    world_rows = [[sum(g[i] * R[i][j] for i in range(3)) for j in range(3)] for g in duv_dc]
+    return columns, world_rows
+
+
+def _pinhole_columns(xc, dist, au, av, s):
+    """The pinhole lens in `_pixel_columns`: `(x_d, y_d)`, `d(u, v) / d(camera coordinates)` and
+    `d(x_d, y_d) / d(k1, k2, p1, p2, k3)`."""
+    k1, k2, p1, p2, k3 = (dist[i] for i in range(5))
     x, y = xc[0] / xc[2], xc[1] / xc[2]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -456,19 +484,37 @@ def _pixel_columns(p, R0, world, mask=None):
     # Divisions, not products with 1 / z: XLA fuses cheap operations into every consumer,
     # recomputing them per column, but computes an expensive one (a division) once, to memory.
     duv_dc = [[a / xc[2], b / xc[2], -(a * x + b * y) / xc[2]] for a, b in duv_dxy]
-    zero, one = jnp.zeros_like(x), jnp.ones_like(x)
     r4 = r2 * r2
     dxd = [x * r2, x * r4, 2.0 * x * y, r2 + 2.0 * x * x, x * r4 * r2]  # d xd / d(k1..k3)
     dyd = [y * r2, y * r4, r2 + 2.0 * y * y, 2.0 * x * y, y * r4 * r2]
-    columns = [(xd, zero), (zero, yd), (one, zero), (zero, one), (yd, zero)]
-    # rotation increments: d(u, v) / d w_k = g . ((J e_k) x m) = (J e_k) . (m x g), g a row of
-    # duv_dc (XLA computes each m x g once)
-    J = [[row[k] for row in J] for k in range(3)]  # its columns
-    columns += [tuple(_small.triple(J[k], m, g) for g in duv_dc) for k in range(3)]
-    columns += [(duv_dc[0][k], duv_dc[1][k]) for k in range(3)]  # translation
-    columns += [(au * a + s * b, av * b) for a, b in zip(dxd, dyd)]  # distortion
-    world_rows = [[sum(g[i] * R[i][j] for i in range(3)) for j in range(3)] for g in duv_dc]
-    return columns, world_rows
+    return xd, yd, duv_dc, dxd, dyd
+
+
+def _fisheye_columns(xc, dist):
+    """The fisheye lens in `_pixel_columns`: `(x_d, y_d)`, `d(x_d, y_d) / d(X, Y, Z)` (two rows of
+    three) and `d(x_d, y_d) / d(k1, k2, k3, k4)`. With `s = theta_d / rho`, `x_d = s X`:
+    `d s / d Z = -theta_d' / |x_cam|^2` and `(d s / d rho) / rho` (its limit on the axis,
+    `2 (k1 - 1/3) / Z^3`, from the series of `theta_d / rho`)."""
+    X, Y, Z = xc
+    r2 = X * X + Y * Y
+    on_axis = r2 == 0
+    rho = jnp.sqrt(jnp.where(on_axis, 1.0, r2))
+    theta = jnp.arctan2(rho, Z)
+    theta_d, slope = _fisheye_polynomial(theta, dist)
+    q2 = r2 + Z * Z
+    scale = jnp.where(on_axis, 1.0 / Z, theta_d / rho)
+    by_rho = jnp.where(
+        on_axis, 2.0 * (dist[0] - 1.0 / 3.0) / Z**3, (slope * Z * rho / q2 - theta_d) / (rho * r2)
+    )
+    by_z = -slope / q2
+    xy = X * Y * by_rho
+    dxy_dc = [[scale + X * X * by_rho, xy, X * by_z], [xy, scale + Y * Y * by_rho, Y * by_z]]
+    t2 = theta * theta
+    powers = [theta * t2]
+    for _ in range(3):
+        powers.append(powers[-1] * t2)
+    unit_x, unit_y = X / rho, Y / rho  # zero on the axis, where every power is zero too
+    return X * scale, Y * scale, dxy_dc, [unit_x * q for q in powers], [unit_y * q for q in powers]
 
 
 def _robust_rows(rows, r, loss):
@@ -489,7 +535,7 @@ def _scales(p0):
     f = jnp.abs(p0[0])
     d = jnp.linalg.norm(p0[8:11])
     one = jnp.ones((), p0.dtype)
-    return jnp.stack([f] * 5 + [one] * 3 + [d] * 3 + [one] * 5)
+    return jnp.stack([f] * 5 + [one] * 3 + [d] * 3 + [one] * (p0.shape[0] - 11))
 
 
 def _parameters(y, p0, scale, free):
@@ -617,7 +663,7 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )
     # a camera without a finite seed sees nothing (its problem ends at once), and is flagged
-    cams, mask, usable = usable_rig(cams, flat(mask, (n,)), unit_camera(world.dtype))
+    cams, mask, usable = usable_rig(cams, flat(mask, (n,)), unit_camera(world.dtype, cams.lens))
     inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), mask)
     out = _sharding.chunked_map(jax.vmap(kernel), inputs, _chunk_size(math.prod(batch)))
     refined, rms_before, rms_after, steps, result, *rest = out
@@ -627,29 +673,40 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 
-def _free_parameters(distortion, fix, skew) -> tuple[int, ...]:
-    def expand(names, what):
-        if isinstance(names, str):
-            names = (names,)
+def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int, ...]:
+    """Indices into `parameter_names(lens)` of the parameters to estimate. `distortion=None` is
+    the lens's `DEFAULT_DISTORTION`."""
+    names = parameter_names(lens)
+    coefficients = LENSES[lens]
+    groups = {**GROUPS, "distortion": coefficients}
+
+    def expand(given, what):
+        if isinstance(given, str):
+            given = (given,)
         out = []
-        for name in names:
-            if name in GROUPS:
-                out.extend(GROUPS[name])
-            elif name in PARAMETERS:
+        for name in given:
+            if name in groups:
+                out.extend(groups[name])
+            elif name in names:
                 out.append(name)
             else:
                 raise ValueError(
-                    f"unknown parameter {name!r} in `{what}`; use any of {PARAMETERS} or the "
-                    f"groups {tuple(GROUPS)}."
+                    f"unknown parameter {name!r} in `{what}` of a {lens} camera; use any of "
+                    f"{names} or the groups {tuple(groups)}."
                 )
         return set(out)
 
+    if distortion is None:
+        distortion = DEFAULT_DISTORTION[lens]
     estimated = expand(distortion, "distortion")
-    if not estimated <= set(DISTORTION):
-        raise ValueError(f"`distortion` takes coefficients of {DISTORTION}; got {distortion!r}.")
+    if not estimated <= set(coefficients):
+        raise ValueError(
+            f"`distortion` of a {lens} camera takes coefficients of {coefficients}; "
+            f"got {distortion!r}."
+        )
     fixed = expand(fix, "fix") | (set() if skew else {"skew"})
-    fixed |= set(DISTORTION) - estimated
-    return tuple(i for i, name in enumerate(PARAMETERS) if name not in fixed)
+    fixed |= set(coefficients) - estimated
+    return tuple(i for i, name in enumerate(names) if name not in fixed)
 
 
 def _skew_model(cameras: Camera, skew: bool, fix) -> Camera:
@@ -683,7 +740,7 @@ def refine(
     pixels: Float[Array, "*batch N 2"],
     mask: Bool[Array, "*batch N"] | None = None,
     *,
-    distortion: Sequence[str] | str = ("k1", "k2", "p1", "p2"),
+    distortion: Sequence[str] | str | None = None,
     fix: Sequence[str] | str = (),
     skew: bool = False,
     loss: Huber | Cauchy | None = None,
@@ -696,16 +753,19 @@ def refine(
     across the rig; on one CPU device in equal chunks of at most `CHUNK` cameras) by
     `optimistix.least_squares` with `SecantLM`, a Levenberg–Marquardt whose model keeps the
     residuals' curvature, and the projection's Jacobian written out. The rotation is refined as
-    a minimal axis-angle increment on the seed's; the model is `Camera.project` (pinhole with
-    Brown–Conrady distortion in OpenCV's order). Derivatives of the result with respect to
-    `world` and `pixels` (and the seed) come from implicit differentiation through the optimum.
+    a minimal axis-angle increment on the seed's; the model is `Camera.project`, with the seed's
+    lens (a pinhole with Brown–Conrady distortion, or a fisheye). Derivatives of the result with
+    respect to `world` and `pixels` (and the seed) come from implicit differentiation through
+    the optimum.
 
     **Arguments:**
 
     - `cameras`: the seed, a `Camera` with the rig's batch shape.
     - `world`, `pixels`, `mask`: as for `mvcalib.dlt` (`world` may be shared by the rig).
-    - `distortion`: which of `("k1", "k2", "p1", "p2", "k3")` to estimate; the others keep the
-      seed's values (zeros for a DLT seed). `()` or `"none"`-like empty means a pinhole model.
+    - `distortion`: which of the lens's coefficients to estimate (`"distortion"` for all); the
+      others keep the seed's values (zeros for a DLT seed); `()` for none. By default OpenCV's
+      choice: `("k1", "k2", "p1", "p2")` of a pinhole's `(k1, k2, p1, p2, k3)`, all four
+      `(k1, k2, k3, k4)` of a fisheye's.
     - `fix`: parameters held at the seed's values: names from `PARAMETERS`, or the groups
       `"focal"`, `"principal_point"`, `"intrinsics"`, `"rotation"`, `"translation"`, `"pose"`.
     - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew
@@ -738,7 +798,7 @@ def refine(
     # cameras have NaN seeds, which end at once, padded points are hidden.
     bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
-    free = _free_parameters(distortion, fix, skew)
+    free = _free_parameters(distortion, fix, skew, cameras.lens)
     cameras = _skew_model(cameras, skew, fix)
     if _validate.is_concrete(mask) and not cameras.batch_shape:
         n_min = int(np.sum(np.asarray(mask)))
@@ -798,5 +858,5 @@ def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) 
         inliers=inliers,
         covariance=cov,
         standard_errors=std,
-        parameter_names=tuple(PARAMETERS[i] for i in free),
+        parameter_names=tuple(parameter_names(cameras.lens)[i] for i in free),
     )

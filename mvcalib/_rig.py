@@ -32,7 +32,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _buckets, _dlt, _small, _validate
 from ._camera import (
     Camera,
-    _distort,
+    _lens,
     finite_cameras,
     undistort_points,
     unit_camera,
@@ -54,6 +54,7 @@ from ._refine import (
     _robust_weights,
     _skew_model,
     _unpack,
+    parameter_names,
 )
 from ._registration import RigidTransform
 from ._rotation import exp_and_left_jacobian, nearest_rotation, rodrigues
@@ -336,15 +337,17 @@ def _initialise(
     C, F, N = mask.shape
     dtype = pixels.dtype
     raw = pixels
+    closed = mask  # the points the closed form takes
     if given:  # the given lens distortion removed first, so that the closed form is exact
         pixels = undistort_points(jax.tree_util.tree_map(lambda x: x[:, None], cameras), pixels)
-        pixels = jnp.where(mask[..., None], pixels, 0.0)
+        closed = mask & jnp.all(jnp.isfinite(pixels), -1)  # (a fisheye's beyond 90: NaN)
+        pixels = jnp.where(closed[..., None], pixels, 0.0)
     K = cameras.K if given else None
     if planar:
         xy = plane.apply(target)[:, :2]
-        K, determined, Rp, tp, ok = _pair_poses_planar(plane, xy, pixels, mask, K, rcond)
+        K, determined, Rp, tp, ok = _pair_poses_planar(plane, xy, pixels, closed, K, rcond)
     else:
-        K, determined, Rp, tp, ok = _pair_poses_object(target, pixels, mask, K, rcond)
+        K, determined, Rp, tp, ok = _pair_poses_object(target, pixels, closed, K, rcond)
     # (a pose that passed its own checks may still not be finite: with exact pixels and all but
     # one visible point of a 3-D target on one face, the DLT's null space is two-dimensional and
     # a rank-one P can come out, which does not decompose)
@@ -363,6 +366,7 @@ def _initialise(
         tp[:, 0],
         skew=K[:, 0, 1],
         dist=dist,
+        lens=cameras.lens if given else "pinhole",
     )
     if not given:
         # each camera alone with its own frames: its intrinsics, distortion and the target's
@@ -464,7 +468,7 @@ def _project(camera: Camera, world, mask):
     division, so that neither they nor their derivatives are NaN."""
     x, y, z = camera._camera_coordinates(world)  # noqa: SLF001
     x, y, z = jnp.where(mask, x, 0.0), jnp.where(mask, y, 0.0), jnp.where(mask, z, 1.0)
-    xd, yd = _distort(x / z, y / z, camera.dist[..., None, :])
+    xd, yd = _lens([x, y, z], camera.dist[..., None, :])
     u = camera.alpha_u[..., None] * xd + camera.skew[..., None] * yd + camera.u0[..., None]
     return jnp.stack([u, camera.alpha_v[..., None] * yd + camera.v0[..., None]], -1)
 
@@ -730,8 +734,9 @@ def _refine(
     f = jnp.abs(p0[:, :1])
     one = jnp.ones((C, 1), dtype)
     scale = jnp.concatenate(
-        [f.repeat(5, 1), one.repeat(3, 1), (distance * one).repeat(3, 1), one.repeat(5, 1)], 1
-    )
+        [f.repeat(5, 1), one.repeat(3, 1), (distance * one).repeat(3, 1),
+         one.repeat(p0.shape[1] - 11, 1)], 1  # the lens's coefficients
+    )  # fmt: skip
     used = mask & pair[..., None]
     pixels = jnp.where(used[..., None], pixels, 0.0)
     move_f = frame_ok.astype(dtype)
@@ -858,7 +863,7 @@ def _calibrate_rig(
     # what may move: the free parameters of calibrated cameras, not the reference's pose
     movable = ok[:, None] & ~((jnp.arange(C) == reference)[:, None] & pose[None, :])
     y, steps, result, args, used, normal = _refine(
-        where_cameras(ok, initial, unit_camera(pixels.dtype)),
+        where_cameras(ok, initial, unit_camera(pixels.dtype, initial.lens)),
         frames,
         pair,
         frame_ok,
@@ -927,7 +932,7 @@ def calibrate_rig(
     *,
     cameras: Camera | None = None,
     fix: str | Sequence[str] = (),
-    distortion: Sequence[str] = ("k1", "k2", "p1", "p2"),
+    distortion: Sequence[str] | None = None,
     skew: bool = False,
     reference: int | str = 0,
     origin_frame: int | None = None,
@@ -956,12 +961,16 @@ def calibrate_rig(
       planar target (6 of a 3-D one) is skipped, and counted in `skipped`.
     - `cameras`: `(C,)` a starting rig (e.g. `mc.io.load_caliscope_cameras`): its intrinsics
       and distortion replace the closed-form ones, and its poses are used where `fix` holds
-      them (else the poses come from the frames); needed to `fix` the intrinsics.
+      them (else the poses come from the frames); needed to `fix` the intrinsics. Its lens is
+      the rig's: a fisheye rig starts from fisheye cameras (e.g. each calibrated by
+      `mvcalib.calibrate_planar(..., lens="fisheye")`), whose closed-form poses use the points
+      within 90 degrees of each camera's axis, and the joint solve all of them.
     - `fix`: parameters held at their starting values, by name or group as for `mvcalib.refine`
       (`"intrinsics"`, `"distortion"`, `"focal"`, `"principal_point"`, ...); `"pose"` holds
       every camera's pose as given in `cameras`, in their world frame (`reference` is then
       unused), so that only the target's poses are fitted.
-    - `distortion`: the coefficients estimated (default k1, k2, p1, p2); `skew`: estimate it.
+    - `distortion`: the coefficients estimated (default as for `mvcalib.refine`: a pinhole's
+      k1, k2, p1, p2; a fisheye's k1..k4); `skew`: estimate it.
     - `reference`: the camera whose frame is the world's (default 0), or `"target"`: the
       target's frame in `origin_frame` (default: the frame seen by the most cameras), so that
       the board sets the world's origin and floor.
@@ -1035,8 +1044,10 @@ def calibrate_rig(
             f"no (camera, frame) pair sees {minimum} or more points of the target: nothing to "
             "calibrate from."
         )
-    free = _free_parameters(distortion, fix, skew)
-    fixed = set(PARAMETERS) - {PARAMETERS[i] for i in free}
+    lens = "pinhole" if cameras is None else cameras.lens
+    names = parameter_names(lens)
+    free = _free_parameters(distortion, fix, skew, lens)
+    fixed = set(names) - {names[i] for i in free}
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:
         raise ValueError("holding the intrinsics fixed needs the starting rig: pass `cameras=`.")
@@ -1084,7 +1095,7 @@ def calibrate_rig(
         quick=C * F * N <= QUICK_SIZE,
     )
     result = RigCalibration(
-        skipped=jnp.asarray(skipped), parameter_names=tuple(PARAMETERS[i] for i in free), **out
+        skipped=jnp.asarray(skipped), parameter_names=tuple(names[i] for i in free), **out
     )
     if concrete and int(result.status[solve_reference]) != Status.OK:
         raise ValueError(
