@@ -65,6 +65,22 @@ def _normal_coefficients(P):
     return jnp.stack([sym(P3, P3) / 2, -sym(P3, P1), -sym(P3, P2), (sym(P1, P1) + sym(P2, P2)) / 2])
 
 
+def _ray_coefficients(P):
+    """`B (7, 10, C)` as `_normal_coefficients`, for the features `m, m dx^2, m dy^2, m dz^2,
+    m dx dy, m dx dz, m dy dz` of unit rays `d` (a fisheye's, up to 180 degrees off axis): a view
+    adds `P^T (I - d d^T) P`, the squared distance of the point from its ray, whose three rows
+    (`d x P X`) stay of full rank where the pinhole's two, `x P3 - P1` and `y P3 - P2` with
+    `(x, y) = (dx, dy) / dz`, lose one at 90 degrees."""
+    P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]
+
+    def sym(a, b):
+        return jnp.asarray(_SYM, a.dtype) @ (a[:, :, None] * b[:, None, :]).reshape(-1, 16).T
+
+    squares = [sym(a, a) / 2 for a in (P1, P2, P3)]
+    cross = [-sym(P1, P2), -sym(P1, P3), -sym(P2, P3)]
+    return jnp.stack([sum(squares)] + [-q for q in squares] + cross)
+
+
 def _congruence(G, s, d):
     """`T^T G T` for `T = [[s I, d], [0, 1]]`, entry by entry (`G` as rows of entries): the normal
     matrix of the point `X = s X' + d` in terms of `X'`."""
@@ -140,8 +156,10 @@ def _refine_point(cameras: Camera, X0, pixels, m, max_steps):
     return jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, X0)
 
 
-def _diagnostics(cameras: Camera, X, u, v, m):
-    """Views, reprojection RMS, widest ray angle and in-front flag of the points `X (N, 3)`.
+def _diagnostics(cameras: Camera, X, u, v, m, observed=None):
+    """Views, reprojection RMS, widest ray angle and in-front flag of the points `X (N, 3)`: in
+    front of every view that sees it, at positive depth; or, given the `observed` unit rays
+    `(3, C, N)` (a fisheye's), on the side of each camera its ray points to.
 
     Computed as `(C, N)` arrays over all views at once, summed over the views by a product with
     ones: XLA's reductions over a leading axis, and over short trailing ones, are slow on a CPU.
@@ -179,7 +197,12 @@ def _diagnostics(cameras: Camera, X, u, v, m):
     # loop and arccos (as arctan2) element by element, 2.2 against 9 ns a point (within 2.5 ulp
     # of arccos, 5e-14 degrees); 1 - c is exact where c is near 1, and c = -1 gives atan(inf)
     angle = jnp.degrees(2.0 * jnp.arctan(jnp.sqrt((1.0 - cos) / (1.0 + cos))))
-    in_front = views @ (w * (cameras.depth(X) <= 0)) == 0
+    if observed is None:
+        behind = cameras.depth(X) <= 0
+    else:
+        xc = cameras._camera_coordinates(X)  # noqa: SLF001
+        behind = sum(r * c for r, c in zip(observed, xc)) <= 0
+    in_front = views @ (w * behind) == 0
     # A point seen by fewer than two views has no position: its diagnostics are NaN, not
     # whatever the rounding of its stand-in happened to give.
     rms, angle = (jnp.where(n >= 2, x, jnp.nan) for x in (rms, angle))
@@ -218,16 +241,22 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     m = mask & jnp.isfinite(u) & jnp.isfinite(v)
     pu = jnp.where(m, u, cameras.u0[:, None])
     pv = jnp.where(m, v, cameras.v0[:, None])
-    # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
-    ideal = jax.lax.cond(
-        jnp.any(cameras.dist != 0),
-        lambda u, v: tuple(jnp.moveaxis(undistort_points(cameras, jnp.stack([u, v], -1)), -1, 0)),
-        lambda u, v: (u, v),
-        pu,
-        pv,
-    )
-    y = (ideal[1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
-    x = (ideal[0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
+    fisheye = cameras.lens == "fisheye"
+    if fisheye:  # unit rays, beyond 90 degrees too
+        rays = jnp.moveaxis(cameras.rays(jnp.stack([pu, pv], -1)), -1, 0)
+    else:
+        # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
+        ideal = jax.lax.cond(
+            jnp.any(cameras.dist != 0),
+            lambda u, v: tuple(
+                jnp.moveaxis(undistort_points(cameras, jnp.stack([u, v], -1)), -1, 0)
+            ),
+            lambda u, v: (u, v),
+            pu,
+            pv,
+        )
+        y = (ideal[1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
+        x = (ideal[0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
 
     centres = cameras.center
     middle = jnp.mean(centres, 0)
@@ -244,10 +273,16 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     # products of small matrices are slower than one with the features stacked); each is
     # then moved to its point's own frame, the centroid and spread of just the views that see
     # the point, so that a hidden view changes nothing (the linear solution depends on the frame).
-    w = m.astype(x.dtype)
+    w = m.astype(pu.dtype)
     n = jnp.ones_like(w[:, 0]) @ w  # (a sum over the leading axis is slow on a CPU)
-    B = _normal_coefficients(P)
-    features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
+    if fisheye:
+        B = _ray_coefficients(P)
+        dx, dy, dz = rays
+        products = [dx * dx, dy * dy, dz * dz, dx * dy, dx * dz, dy * dz]
+        features = jnp.concatenate([w] + [w * q for q in products])  # (7C, N)
+    else:
+        B = _normal_coefficients(P)
+        features = jnp.concatenate([w * (x * x + y * y), w * x, w * y, w])  # (4C, N)
     entries = jnp.concatenate(B, -1) @ features
     G = [[None] * 4 for _ in range(4)]
     for k, (i, j) in enumerate(_PAIRS):
@@ -275,7 +310,7 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
         X = jax.vmap(_refine_point, in_axes=(None, 0, 1, 1, None))(
             cameras, X, jnp.stack([pu, pv], -1), m & seen, max_steps
         )
-    n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m)
+    n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m, rays if fisheye else None)
     ok = seen & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
     X = jnp.where(seen[:, None], X, jnp.nan)
     return Triangulation(points=X, views=n.astype(jnp.int32), rms=rms, angle=angle, ok=ok)
@@ -294,7 +329,10 @@ def triangulate(
 
     For each point: the pixels are undistorted (`undistort_points`) and taken to normalised
     camera coordinates, and the point is the null vector of the `2C x 4` linear system of its
-    visible views (the DLT of the point; the smallest eigenvector of its 4 x 4 normal matrix);
+    visible views (the DLT of the point; the smallest eigenvector of its 4 x 4 normal matrix).
+    Fisheye cameras give unit rays (`Camera.rays`, up to 180 degrees off axis) and each view
+    three rows, the point's offset from its ray (`d x P X`), so that rays beside or behind the
+    image plane count as any other;
     with `refine=True` it is then moved to the minimum of its reprojection error (optimistix
     Levenberg–Marquardt, distortion included).
     All points (and all point sets) in one jit-compiled, vectorised call. Differentiable with
@@ -368,7 +406,7 @@ def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
     """`triangulate` of validated `pixels (..., C, N, 2)` and `mask (..., C, N)`."""
     cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, pixels.dtype), cameras)
     # a NaN camera (not calibrated) sees nothing
-    cameras, mask, _ = usable_rig(cameras, mask, unit_camera(pixels.dtype))
+    cameras, mask, _ = usable_rig(cameras, mask, unit_camera(pixels.dtype, cameras.lens))
     run = functools.partial(
         _triangulate_set,
         cameras,
