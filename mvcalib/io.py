@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import Camera
+from ._camera import LENSES, Camera
 
 __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
@@ -118,6 +118,7 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
         entry = {"name": names[i]}
         entry.update({k: _plain(getattr(rig, k)[i]) for k in _SCALARS})
         entry.update(R=_plain(rig.R[i]), t=_plain(rig.t[i]), dist=_plain(rig.dist[i]))
+        entry["lens"] = rig.lens
         if status is not None:
             entry["status"] = int(np.asarray(status).reshape(-1)[i])
         if rms is not None:
@@ -146,19 +147,41 @@ def load_json(path) -> tuple[Camera, list[str]]:
     if not isinstance(cameras, list) or not cameras:
         raise ValueError(f"{path}: the rig file lists no cameras.")
     fields = {k: [] for k in (*_SCALARS, "R", "t", "dist")}
+    lenses = []
     try:
         for entry in cameras:
+            lens = entry.get("lens", "pinhole")  # (files before the fisheye have no "lens")
+            if lens not in LENSES:
+                raise ValueError(f"lens {lens!r} is not one of {tuple(LENSES)}")
+            n_dist = len(LENSES[lens])
             for k in _SCALARS:
                 fields[k].append(_array(entry[k], ()))
             fields["R"].append(_array(entry["R"], (3, 3)))
             fields["t"].append(_array(entry["t"], (3,)))
-            fields["dist"].append(_array(entry.get("dist", [0.0] * 5), (5,)))
-    except (KeyError, TypeError, ValueError) as error:
+            fields["dist"].append(_array(entry.get("dist", [0.0] * n_dist), (n_dist,)))
+            lenses.append(lens)
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
         where = f"{path}: camera entry {len(fields['R'])}"
         raise ValueError(f"{where} is malformed ({error}).") from None
-    stacked = {k: jnp.asarray(np.stack(v)) for k, v in fields.items()}
     names = [str(e.get("name", f"cam_{i}")) for i, e in enumerate(cameras)]
-    return Camera(**stacked), names
+    lens = _one_lens(path, lenses, names)
+    stacked = {k: jnp.asarray(np.stack(v)) for k, v in fields.items()}
+    return Camera(**stacked, lens=lens), names
+
+
+def _one_lens(path, lenses, names) -> str:
+    """The lens of a rig read from a file: every camera's must be the same (a rig is one
+    batched `Camera`; load a mixed set as separate rigs)."""
+    if len(set(lenses)) > 1:
+        by = {
+            lens: [n for n, x in zip(names, lenses) if x == lens] for lens in dict.fromkeys(lenses)
+        }
+        listed = "; ".join(f"{lens}: {', '.join(map(str, n))}" for lens, n in by.items())
+        raise ValueError(
+            f"{path}: cameras of different lenses ({listed}); an mvcalib rig has one lens "
+            "model. Split the file into one rig per lens."
+        )
+    return lenses[0] if lenses else "pinhole"
 
 
 def _read_toml(path: pathlib.Path) -> dict:
@@ -178,8 +201,9 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
 
     Each `[cam_i]` table holds `matrix` (K), `distortions` (OpenCV's k1 k2 p1 p2 k3),
     `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
-    the file's order of `cam_0, cam_1, ...`. Needs Python >= 3.11 (`tomllib`). A camera with
-    `fisheye = true` is refused (ValueError): no lens model of mvcalib's describes it yet.
+    the file's order of `cam_0, cam_1, ...`. Cameras with `fisheye = true` (aniposelib's
+    `FisheyeCamera`: `cv2.fisheye`'s k1 k2 k3 k4) come back as `lens="fisheye"`; a file mixing
+    both is refused (ValueError), as a rig has one lens. Needs Python >= 3.11 (`tomllib`).
     """
     from ._rotation import rodrigues
 
@@ -188,23 +212,22 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     keys = sorted((k for k in document if re.fullmatch(r"cam_\d+", k)), key=lambda k: int(k[4:]))
     if not keys:
         raise ValueError(f"{path}: no [cam_N] tables.")
-    fisheye = [k for k in keys if document[k].get("fisheye", False)]
-    if fisheye:  # its 4 distortion terms are Kannala-Brandt's, not Brown-Conrady's
-        raise ValueError(
-            f"{path}: {', '.join(fisheye)} use aniposelib's fisheye model (`fisheye = true`), "
-            "which mvcalib's pinhole Camera cannot represent; read as a pinhole, its cameras "
-            "would project far from OpenCV's fisheye ones."
-        )
+    # its 4 distortion terms of a fisheye are Kannala-Brandt's, not Brown-Conrady's
+    lenses = ["fisheye" if document[k].get("fisheye", False) else "pinhole" for k in keys]
+    lens = _one_lens(path, lenses, keys)
+    n_dist = len(LENSES[lens])
     try:
         K = np.array([document[k]["matrix"] for k in keys], dtype=float)
-        dist = np.array([document[k].get("distortions", [0.0] * 5) for k in keys], dtype=float)
+        dist = [np.ravel(document[k].get("distortions", [0.0] * n_dist)) for k in keys]
+        if any(len(d) > n_dist for d in dist):
+            raise ValueError(f"more than {n_dist} distortion terms for a {lens} lens")
+        dist = np.array([np.pad(np.asarray(d, float), (0, n_dist - len(d))) for d in dist])
         rvec = np.array([document[k]["rotation"] for k in keys], dtype=float)
         t = np.array([document[k]["translation"] for k in keys], dtype=float)
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: a camera table is malformed ({error}).") from None
-    dist = np.pad(dist, ((0, 0), (0, 5 - dist.shape[1])))
     names = [str(document[k].get("name", k)) for k in keys]
-    return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist), names
+    return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist, lens=lens), names
 
 
 # ---------------------------------------------------------------------------- OpenCV YAML
@@ -220,12 +243,19 @@ def _opencv_matrix(name: str, a, indent: str) -> list[str]:
     ]
 
 
+# The lens's tag in FileStorage YAML: ROS camera_info's names (`distortion_model`).
+_OPENCV_MODEL = {"pinhole": "plumb_bob", "fisheye": "equidistant"}
+_OPENCV_LENS = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole",
+                "equidistant": "fisheye", "fisheye": "fisheye"}  # fmt: skip
+
+
 def _opencv_camera(camera: Camera, indent: str, image_size) -> list[str]:
     lines = []
     if image_size is not None:
         width, height = (int(v) for v in image_size)
         lines += [f"{indent}image_width: {width}", f"{indent}image_height: {height}"]
     lines += _opencv_matrix("camera_matrix", camera.K, indent)
+    lines.append(f"{indent}distortion_model: {_OPENCV_MODEL[camera.lens]}")
     lines += _opencv_matrix("distortion_coefficients", np.asarray(camera.dist)[None], indent)
     lines += _opencv_matrix("R", camera.R, indent)
     lines += _opencv_matrix("T", np.asarray(camera.t)[:, None], indent)
@@ -236,8 +266,10 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     """Save cameras as OpenCV FileStorage YAML, readable by `cv2.FileStorage`, atomically.
 
     One camera is written at the top level with OpenCV's usual keys: `camera_matrix` (K),
-    `distortion_coefficients` (1 x 5: k1 k2 p1 p2 k3), `R` (world to camera) and `T` (3 x 1),
-    with `image_width`/`image_height` if `image_size=(width, height)` is given. A rig is
+    `distortion_model` (ROS's tag: `plumb_bob` for a pinhole, `equidistant` for a fisheye),
+    `distortion_coefficients` (1 x 5: k1 k2 p1 p2 k3; a fisheye's 1 x 4: k1 k2 k3 k4, as
+    `cv2.fisheye` takes them), `R` (world to camera) and `T` (3 x 1), with
+    `image_width`/`image_height` if `image_size=(width, height)` is given. A rig is
     written as one map per camera (`cam_0`, ... or `names`) holding those keys, and `cameras`
     listing the names. Numbers are written with Python's shortest exact representation, so
     reading back (with `load_opencv` or `cv2.FileStorage`) gives the same doubles.
@@ -274,7 +306,9 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
 def load_opencv(path) -> tuple[Camera, list[str]]:
     """Load a file written by `save_opencv` (or any FileStorage YAML with `camera_matrix`,
     `distortion_coefficients`, `R`, `T`, at the top level or in per-camera maps listed by
-    `cameras`): `(cameras, names)`; a single camera comes back with no camera axis."""
+    `cameras`): `(cameras, names)`; a single camera comes back with no camera axis. The lens is
+    `distortion_model`'s (`equidistant` or `fisheye`: a fisheye; none, `plumb_bob` or
+    `rational_polynomial`: a pinhole, whose coefficients beyond k3 must be zero)."""
     path = pathlib.Path(path)
     try:
         text = path.read_text()
@@ -286,7 +320,7 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
         maps = [tree.get(n) for n in names]
     else:
         names, maps = ["camera"], [tree]
-    fields = []
+    fields, lenses = [], []
     for name, node in zip(names, maps):
         try:
             K, dist, R, T = (
@@ -298,10 +332,25 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
                 f"{path}: camera {name!r} lacks camera_matrix, "
                 "distortion_coefficients, R or T (3x3, 1x5, 3x3, 3x1)."
             ) from None
+        model = node.get("distortion_model", "plumb_bob")
+        if model not in _OPENCV_LENS:
+            raise ValueError(
+                f"{path}: camera {name!r} has distortion_model {model!r}; mvcalib reads "
+                f"{', '.join(_OPENCV_LENS)}."
+            )
+        lenses.append(_OPENCV_LENS[model])
+    lens = _one_lens(path, lenses, names)
+    n_dist = len(LENSES[lens])
+    for name, (_, dist, _, _) in zip(names, fields):
+        if len(dist) > n_dist and np.any(dist[n_dist:]):
+            raise ValueError(
+                f"{path}: camera {name!r} has {len(dist)} distortion coefficients; a {lens} "
+                f"lens has {n_dist} ({', '.join(LENSES[lens])}), and the others are not zero."
+            )
+    fields = [(K, np.pad(d, (0, max(0, n_dist - len(d))))[:n_dist], R, T) for K, d, R, T in fields]
     K, dist, R, T = (np.stack(f) for f in zip(*fields))
-    dist = np.pad(dist, ((0, 0), (0, max(0, 5 - dist.shape[1]))))[:, :5]
     cameras = Camera.from_matrices(
-        jnp.asarray(K), jnp.asarray(R), jnp.asarray(T), jnp.asarray(dist)
+        jnp.asarray(K), jnp.asarray(R), jnp.asarray(T), jnp.asarray(dist), lens=lens
     )
     if "cameras" not in tree:
         cameras = cameras[0]
@@ -393,7 +442,8 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
     """Export a rig as a COLMAP text model: `cameras.txt`, `images.txt`, empty `points3D.txt`.
 
     Each camera becomes one COLMAP camera (model `OPENCV`: fx fy cx cy k1 k2 p1 p2, or
-    `FULL_OPENCV` when k3 is not zero) and one image (`names`, default `cam_i.png`) with its
+    `FULL_OPENCV` when k3 is not zero; a fisheye `OPENCV_FISHEYE`: fx fy cx cy k1 k2 k3 k4) and
+    one image (`names`, default `cam_i.png`) with its
     pose as COLMAP's world-to-camera quaternion and translation. COLMAP puts the pixel origin at
     the corner of the first pixel, mvcalib at its centre, so `cx = u0 + 0.5`. COLMAP has no
     skew: a camera with skew is refused. Files are written atomically.
@@ -430,11 +480,14 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
             "#   POINTS2D[] as (X, Y, POINT3D_ID)"]  # fmt: skip
     for i in range(n):
-        k1, k2, p1, p2, k3 = rig.dist[i]
-        params = [rig.alpha_u[i], rig.alpha_v[i], rig.u0[i] + 0.5, rig.v0[i] + 0.5, k1, k2, p1, p2]
-        model = "OPENCV"
-        if k3 != 0:
-            model, params = "FULL_OPENCV", [*params, k3, 0.0, 0.0, 0.0]
+        params = [rig.alpha_u[i], rig.alpha_v[i], rig.u0[i] + 0.5, rig.v0[i] + 0.5]
+        if rig.lens == "fisheye":
+            model, params = "OPENCV_FISHEYE", [*params, *rig.dist[i]]
+        else:
+            k1, k2, p1, p2, k3 = rig.dist[i]
+            model, params = "OPENCV", [*params, k1, k2, p1, p2]
+            if k3 != 0:
+                model, params = "FULL_OPENCV", [*params, k3, 0.0, 0.0, 0.0]
         cams.append(f"{i + 1} {model} {width} {height} " + " ".join(repr(float(v)) for v in params))
         pose = [*_quaternion(rig.R[i]), *rig.t[i]]
         imgs.append(f"{i + 1} " + " ".join(repr(float(v)) for v in pose) + f" {i + 1} {names[i]}")
@@ -447,8 +500,8 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
 
 def load_colmap(folder) -> tuple[Camera, list[str]]:
     """Read a COLMAP text model's cameras and images (models `PINHOLE`, `OPENCV`, `FULL_OPENCV`,
-    `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`): one mvcalib camera per image, `(cameras,
-    image names)`, in the order of `images.txt`."""
+    `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`; `OPENCV_FISHEYE` as a fisheye rig): one mvcalib
+    camera per image, `(cameras, image names)`, in the order of `images.txt`."""
     folder = pathlib.Path(folder)
     try:
         cam_lines = _data_lines(folder / "cameras.txt")
@@ -457,7 +510,7 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
         raise ValueError(f"{folder}: not a COLMAP text model ({error})") from None
     intrinsics = {}
     n_params = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
-    n_params["FULL_OPENCV"] = 12
+    n_params.update(FULL_OPENCV=12, OPENCV_FISHEYE=8)
     for line in cam_lines:
         f = line.split()
         try:
@@ -470,7 +523,10 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
                 f"{folder / 'cameras.txt'}: malformed line {line!r} ({error})"
             ) from None
         dist = [0.0] * 5
-        if model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
+        if model == "OPENCV_FISHEYE":
+            fx, fy, cx, cy = p[:4]
+            dist = p[4:8]
+        elif model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
             fx, fy, cx, cy = p[:4]
             if model != "PINHOLE":
                 dist[:4] = p[4:8]
@@ -484,13 +540,14 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
             dist[: len(p) - 3] = p[3:]
         else:
             raise ValueError(f"{folder}: camera model {model} is not supported.")
-        intrinsics[f[0]] = (fx, fy, cx - 0.5, cy - 0.5, dist)
-    fields, names = [], []
+        intrinsics[f[0]] = (fx, fy, cx - 0.5, cy - 0.5, dist, model)
+    fields, names, lenses = [], [], []
     for line in img_lines[::2]:  # every image has a second line of 2-D points
         f = line.split()
         if len(f) < 10 or f[8] not in intrinsics:
             raise ValueError(f"{folder}: malformed images.txt line: {line!r}")
-        fx, fy, cx, cy, dist = intrinsics[f[8]]
+        fx, fy, cx, cy, dist, model = intrinsics[f[8]]
+        lenses.append("fisheye" if model == "OPENCV_FISHEYE" else "pinhole")
         try:
             q, t = [float(v) for v in f[1:5]], [float(v) for v in f[5:8]]
         except ValueError as error:
@@ -500,8 +557,9 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
         names.append(f[9])
     if not fields:
         raise ValueError(f"{folder}: images.txt lists no images.")
+    lens = _one_lens(folder / "cameras.txt", lenses, names)
     fx, fy, cx, cy, R, t, dist = (np.asarray(v, dtype=float) for v in zip(*fields))
-    return Camera(fx, fy, cx, cy, R, t, dist=dist), names
+    return Camera(fx, fy, cx, cy, R, t, dist=dist, lens=lens), names
 
 
 def _data_lines(path: pathlib.Path) -> list[str]:
@@ -1191,8 +1249,9 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
     wrote it) and `translation` (`x_cam = R X + t`). The cameras come back in ascending id
     order, named `cam_<id>` as `load_caliscope` names them; every table is loaded, including
     those caliscope marks `ignore`. A camera not yet calibrated (no `matrix`, `rotation` or
-    `translation`) has NaN for what it lacks. A fisheye camera is refused. Needs Python >= 3.11
-    (`tomllib`).
+    `translation`) has NaN for what it lacks. Cameras with `fisheye = true` (`cv2.fisheye`'s
+    k1 k2 k3 k4) come back as `lens="fisheye"`; a file mixing both lenses is refused. Needs
+    Python >= 3.11 (`tomllib`).
 
     **Example:**
 
@@ -1223,16 +1282,20 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
     def given(value):  # caliscope writes a missing value as absent, or as "null"
         return value is not None and not (isinstance(value, str) and value == "null")
 
+    lenses = [
+        "fisheye" if isinstance(tables[k], dict) and tables[k].get("fisheye") is True else "pinhole"
+        for k in keys
+    ]
+    lens = _one_lens(path, lenses, [f"cam_{k}" for k in keys])
+    n_dist = len(LENSES[lens])
     fields = []
     for key in keys:
         table = tables[key]
         try:
-            if table.get("fisheye", False) is True:
-                raise ValueError("a fisheye camera; mvcalib's model is Brown-Conrady")
             K = table.get("matrix")
             K = np.array(K, dtype=float) if given(K) else np.full((3, 3), np.nan)
             dist = table.get("distortions")
-            dist = np.array(dist, dtype=float) if given(dist) else np.zeros(5)
+            dist = np.array(dist, dtype=float) if given(dist) else np.zeros(n_dist)
             R = table.get("rotation")
             R = np.array(R, dtype=float) if given(R) else np.full((3, 3), np.nan)
             if R.shape == (3,):
@@ -1241,13 +1304,15 @@ def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
             t = np.array(t, dtype=float) if given(t) else np.full(3, np.nan)
             if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
                 raise ValueError(f"matrix {K.shape}, rotation {R.shape}, translation {t.shape}")
-            if dist.ndim != 1 or len(dist) > 5:
-                raise ValueError(f"{dist.size} distortions; mvcalib has k1 k2 p1 p2 k3")
+            if dist.ndim != 1 or len(dist) > n_dist:
+                raise ValueError(
+                    f"{dist.size} distortions; a {lens} lens has {' '.join(LENSES[lens])}"
+                )
         except (AttributeError, TypeError, ValueError) as error:
             raise ValueError(f"{path}: [cameras.{key}] is malformed ({error}).") from None
-        fields.append((K, R, t, np.pad(dist, (0, 5 - len(dist)))))
+        fields.append((K, R, t, np.pad(dist, (0, n_dist - len(dist)))))
     K, R, t, dist = (np.stack(f) for f in zip(*fields))
-    return Camera.from_matrices(K, R, t, dist), [f"cam_{k}" for k in keys]
+    return Camera.from_matrices(K, R, t, dist, lens=lens), [f"cam_{k}" for k in keys]
 
 
 def load_clicks(path, images, target) -> list:

@@ -118,7 +118,7 @@ def test_caliscope_cameras_older_rodrigues_rotation_ids_in_number_order_and_unca
     [
         ("[cam_0]\nmatrix = 1\n", "no [cameras.<id>] tables"),
         ("[cameras.0]\nmatrix = [[1.0, 0.0], [0.0, 1.0]]\n", "[cameras.0] is malformed"),
-        ("[cameras.0]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\nfisheye = true\n", "fisheye"),
+        ("[cameras.0]\nfisheye = true\n[cameras.1]\nmatrix = 1\n", "different lenses"),
         ("[cameras.0]\ndistortions = [1, 2, 3, 4, 5, 6]\n", "6 distortions"),
         ("[cameras.0\n", "not a readable TOML"),
     ],

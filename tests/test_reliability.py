@@ -466,8 +466,10 @@ def test_malformed_aniposelib_files_are_refused_with_the_file_name(tmp_path):
             mc.io.load_aniposelib(path)
 
 
-def test_aniposelib_fisheye_cameras_are_refused_not_read_as_pinholes(tmp_path):
-    """Issue 43: a `fisheye = true` camera read as a pinhole landed ~1e6 px from OpenCV's."""
+def test_aniposelib_fisheye_cameras_are_read_as_fisheyes_not_pinholes(tmp_path):
+    """Issue 43: a `fisheye = true` camera read as a pinhole landed ~1e6 px from OpenCV's; it is
+    a fisheye now (tests/test_fisheye.py compares it with cv2.fisheye), and a file mixing both
+    lenses is refused, naming the cameras."""
     camera = (
         "matrix = [[600.0, 0.0, 640.0], [0.0, 600.0, 360.0], [0.0, 0.0, 1.0]]\n"
         "distortions = [0.1, -0.02, 0.003, -0.001]\nrotation = [0.0, 0.0, 0.0]\n"
@@ -475,11 +477,13 @@ def test_aniposelib_fisheye_cameras_are_refused_not_read_as_pinholes(tmp_path):
     )
     path = tmp_path / "calibration.toml"
     path.write_text(f"[cam_0]\nname = 'A'\n{camera}\n[cam_1]\nname = 'B'\nfisheye = true\n{camera}")
-    with pytest.raises(ValueError, match="cam_1 use aniposelib's fisheye model"):
+    with pytest.raises(ValueError, match="different lenses .pinhole: cam_0; fisheye: cam_1"):
         mc.io.load_aniposelib(path)
     path.write_text(f"[cam_0]\nname = 'A'\nfisheye = false\n{camera}")
     cameras, names = mc.io.load_aniposelib(path)  # fisheye = false: a pinhole, as before
-    assert names == ["A"] and float(cameras.alpha_u[0]) == 600.0
+    assert names == ["A"] and float(cameras.alpha_u[0]) == 600.0 and cameras.lens == "pinhole"
+    path.write_text(f"[cam_0]\nname = 'A'\nfisheye = true\n{camera}")
+    assert mc.io.load_aniposelib(path)[0].lens == "fisheye"
 
 
 @pytest.mark.parametrize("line", ["1", "1 PINHOLE 10 10 abc 1 2 3", "1 PINHOLE 10 10 5"])
