@@ -16,18 +16,18 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _validate
-from ._camera import Camera
+from ._camera import LENSES, Camera, lens_of
 from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
 from ._refine import (
     _RESULT_MESSAGES,
     DISTORTION,
-    PARAMETERS,
     Cauchy,
     Huber,
     _free_parameters,
     _robust_weights,
     default_solver,
+    parameter_names,
 )
 from ._registration import RigidTransform
 from ._report import ReprojectionReport, compute_report, format_table
@@ -36,6 +36,9 @@ from ._status import Status
 
 MIN_PLANE_POINTS = 4  # a homography has 8 degrees of freedom; each point gives 2 equations
 SHARED = ("alpha_u", "alpha_v", "u0", "v0", "skew", *DISTORTION)  # one value for every view
+# What the refinement estimates of each lens's distortion by default: Zhang's radial model; all
+# of cv2.fisheye's four.
+DEFAULT_DISTORTION = {"pinhole": ("k1", "k2"), "fisheye": LENSES["fisheye"]}
 POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # one per view
 
 _MESSAGES = {
@@ -89,8 +92,9 @@ class PlanarCalibration(eqx.Module):
         return self.camera.K[0]
 
     @property
-    def dist(self) -> Float[Array, " 5"]:
-        """The distortion `(k1, k2, p1, p2, k3)` shared by every view."""
+    def dist(self) -> Float[Array, " K"]:
+        """The distortion shared by every view: `(k1, k2, p1, p2, k3)`, a fisheye's `(k1, k2,
+        k3, k4)`."""
         return self.camera.dist[0]
 
     @property
@@ -254,6 +258,98 @@ def _closed_form(world, plane, pixels, mask, skew, rcond: float):
     return H, camera, status, condition
 
 
+# ------------------------------------------------------------------------------ fisheye seed
+def _equidistant_rays(pixels, centre, focal):
+    """Unit rays `(..., 3)` of pixels through the ideal equidistant lens (`r = f theta`, no
+    distortion) with its principal point at `centre`."""
+    offset = pixels - centre
+    r = np.linalg.norm(offset, axis=-1, keepdims=True)
+    theta = r / focal
+    unit = np.where(r > 0, offset / np.where(r > 0, r, 1.0), 0.0)
+    return np.concatenate([np.sin(theta) * unit, np.cos(theta)], -1)
+
+
+def _ray_homography(a, d):
+    """The homography `H` with `d ~ H (a, 1)` for plane points `a (n, 2)` and unit rays `d (n, 3)`
+    (a ray's sign is free: rays beyond 90 degrees fit as well), by the SVD of the three rows of
+    `d x H a` per point; with its singular values and the sine of each point's angle from its
+    fitted ray."""
+    n = len(a)
+    ah = np.concatenate([a, np.ones((n, 1))], 1)
+    kron = np.einsum("ij,nk->nijk", np.eye(3), ah).reshape(n, 3, 9)  # H ah = kron @ vec(H)
+    rows = np.einsum("nij,njk->nik", _cross_matrices(d), kron).reshape(-1, 9)
+    _, sv, vt = np.linalg.svd(rows, full_matrices=False)
+    H = vt[-1].reshape(3, 3)
+    fitted = ah @ H.T
+    fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
+    return H, sv, np.linalg.norm(np.cross(d, fitted), axis=1)
+
+
+def _cross_matrices(d):
+    zero = np.zeros(len(d))
+    return np.stack([np.stack([zero, -d[:, 2], d[:, 1]], -1),
+                     np.stack([d[:, 2], zero, -d[:, 0]], -1),
+                     np.stack([-d[:, 1], d[:, 0], zero], -1)], 1)  # fmt: skip
+
+
+def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
+    """The fisheye's closed-form seed, in NumPy: the principal point at the image centre, no
+    distortion (the ideal equidistant lens), the focal length that lets every view's rays fit a
+    homography best (a scan of 40 values from 3 to 1/20 radians per `r_max` pixels, then a golden
+    section on its logarithm), and each view's pose from its homography (Zhang's eq. 10 with
+    `K = I`: the rays are already normalised)."""
+    width, height = (float(v) for v in image_size)
+    centre = np.array([(width - 1.0) / 2.0, (height - 1.0) / 2.0])
+    xy = np.asarray(plane.apply(world))[:, :2]
+    pixels, mask = np.asarray(pixels, float), np.asarray(mask)
+    T = np.asarray(_similarity(jnp.asarray(xy), jnp.asarray(mask.any(0), xy.dtype))[0])
+    a = xy @ T[:2, :2].T + T[:2, 2]  # Hartley's normalisation of the plane points
+
+    def fit(focal):
+        out = []
+        for view, seen in zip(pixels, mask):
+            out.append(_ray_homography(a[seen], _equidistant_rays(view[seen], centre, focal)))
+        return out
+
+    def cost(log_focal):  # the angles as pixels of the lens: sum of squares
+        focal = np.exp(log_focal)
+        return sum(float(np.sum((focal * e) ** 2)) for _, _, e in fit(focal))
+
+    r_max = max(float(np.max(np.linalg.norm(pixels[mask] - centre, axis=-1))), 1.0)
+    grid = np.log(np.geomspace(r_max / 3.0, 20.0 * r_max, 40))
+    best = int(np.argmin([cost(g) for g in grid]))
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(40):
+        m1, m2 = hi - golden * (hi - lo), lo + golden * (hi - lo)
+        lo, hi = (lo, m2) if cost(m1) < cost(m2) else (m1, hi)
+    focal = float(np.exp((lo + hi) / 2.0))
+
+    H, R, t, status, condition = [], [], [], [], []
+    for (Hn, sv, _), view, seen in zip(fit(focal), pixels, mask):
+        M = Hn @ T  # plane coordinates to rays
+        lam = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
+        d = _equidistant_rays(view[seen], centre, focal)
+        fitted = np.concatenate([xy[seen], np.ones((seen.sum(), 1))], 1) @ M.T
+        lam *= -1.0 if np.sum(d * fitted) < 0 else 1.0  # the rays' side of the camera
+        r1, r2 = lam * M[:, 0], lam * M[:, 1]
+        R.append(
+            np.asarray(nearest_rotation(jnp.asarray(np.stack([r1, r2, np.cross(r1, r2)], -1))))
+        )
+        t.append(lam * M[:, 2])
+        H.append(M / np.linalg.norm(M))
+        good = sv[-2] > rcond * sv[0]
+        status.append(Status.OK if good else Status.DEGENERATE)
+        condition.append(sv[0] / sv[-2])
+    R, t = np.stack(R), np.stack(t)
+    R, t = R @ np.asarray(plane.R), np.einsum("vij,j->vi", R, np.asarray(plane.t)) + t
+    V = len(pixels)
+    camera = Camera(np.full(V, focal), np.full(V, focal), np.full(V, centre[0]),
+                    np.full(V, centre[1]), R, t, lens="fisheye")  # fmt: skip
+    status = jnp.asarray(np.asarray(status, np.int32))
+    return jnp.asarray(np.stack(H)), camera, status, jnp.asarray(max(condition))
+
+
 def _nan_where(failed, camera: Camera) -> Camera:
     expand = lambda x: failed.reshape(failed.shape + (1,) * (x.ndim - failed.ndim))  # noqa: E731
     return jax.tree_util.tree_map(lambda x: jnp.where(expand(x), jnp.nan, x), camera)
@@ -269,7 +365,8 @@ def _planar_unknowns(y, args):
     p = p0 + y["shared"] * scale * free_shared
     w = y["views"][:, :3] * free_pose[:3]  # axis-angle increments on the seed's rotations
     dt = y["views"][:, 3:] * free_pose[3:] * distance[:, None]
-    return Camera(p[0], p[1], p[2], p[3], rodrigues(w) @ R0, t0 + dt, skew=p[4], dist=p[5:])
+    R, t = rodrigues(w) @ R0, t0 + dt
+    return Camera(p[0], p[1], p[2], p[3], R, t, skew=p[4], dist=p[5:], lens=lens_of(p[5:]))
 
 
 def _planar_residuals(y, args):
@@ -296,7 +393,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     )
     # natural units: pixels of focal length for the intrinsics, the view's distance for t
     f = jnp.abs(p0[0])
-    scale = jnp.concatenate([jnp.full(5, f), jnp.ones(5, p0.dtype)])
+    scale = jnp.concatenate([jnp.full(5, f), jnp.ones(len(p0) - 5, p0.dtype)])
     distance = jnp.linalg.norm(camera.t, axis=-1)
     pixels = jnp.where(mask[..., None], pixels, 0.0)
     args = (p0, camera.R, camera.t, scale, distance, free_shared, free_pose,
@@ -311,10 +408,11 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     return _planar_unknowns(sol.value, args), sol.stats["num_steps"], sol.result._value  # noqa: SLF001
 
 
-def _free_masks(distortion, fix, skew, dtype):
-    free = {PARAMETERS[i] for i in _free_parameters(distortion, fix, skew)}
+def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
+    names = parameter_names(lens)
+    free = {names[i] for i in _free_parameters(distortion, fix, skew, lens)}
     mask = lambda names: jnp.asarray([n in free for n in names], dtype)  # noqa: E731
-    return mask(SHARED), mask(POSE)
+    return mask((*SHARED[:5], *LENSES[lens])), mask(POSE)
 
 
 @_buckets.jit
@@ -382,13 +480,15 @@ def calibrate_planar(
     mask: Bool[Array, "V N"] | None = None,
     *,
     skew: bool = False,
-    distortion: Sequence[str] | str = ("k1", "k2"),
+    distortion: Sequence[str] | str | None = None,
     refine: bool = True,
     fix: Sequence[str] | str = (),
     loss: Huber | Cauchy | None = None,
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 256,
     rcond: float | None = None,
+    lens: str = "pinhole",
+    image_size: tuple[int, int] | None = None,
 ) -> PlanarCalibration:
     """Calibrate one camera from several views of a planar target, by Zhang's method.
 
@@ -419,8 +519,9 @@ def calibrate_planar(
     - `skew`: estimate the skew `K[0, 1]` (Zhang's gamma) — then at least 3 views are needed;
       without it (default, like OpenCV) the zero-skew constraint makes 2 views enough. (From a
       single view only two intrinsics are determined; that case is not supported.)
-    - `distortion`: which of `("k1", "k2", "p1", "p2", "k3")` the refinement estimates;
-      `()` for a pinhole camera.
+    - `distortion`: which of the lens's coefficients the refinement estimates; `()` for none.
+      By default `("k1", "k2")` of a pinhole's `(k1, k2, p1, p2, k3)` (Zhang's radial model),
+      all four of a fisheye's `(k1, k2, k3, k4)` (as `cv2.fisheye.calibrate`).
     - `refine`: run step 4; without it the result is the closed form (no distortion).
     - `fix`, `loss`, `solver`, `max_steps`: as for `mvcalib.refine` (e.g.
       `fix="principal_point"`, `loss=mc.Huber(1.0)`); `fix` names from `("alpha_u", "alpha_v",
@@ -428,6 +529,15 @@ def calibrate_planar(
       `"pose"` (for every view) or their groups.
     - `rcond`: relative singular-value threshold below which a homography or the intrinsics'
       system counts as degenerate; default sqrt(machine epsilon).
+    - `lens`: `"pinhole"` (Zhang's method as above) or `"fisheye"` (Kannala–Brandt, see
+      `Camera`). A fisheye's closed form replaces steps 1-3: the principal point at the centre
+      of the image (`image_size=(width, height)`, required), no distortion (the ideal
+      equidistant lens `r = f theta`), the focal length whose rays let every view's points fit
+      a homography best (a one-dimensional search), and each view's pose from its homography of
+      rays; then step 4 as for a pinhole. Rays beyond 90 degrees off axis count as any other
+      (`cv2.fisheye.calibrate` cannot take them). `homographies` then map the plane to the
+      closed form's rays, and `condition` is the largest of the views' homographies' condition
+      numbers (largest over second-smallest singular value).
 
     **Returns:** a `PlanarCalibration`.
 
@@ -469,6 +579,16 @@ def calibrate_planar(
         world, pixels, mask, min_points=MIN_PLANE_POINTS
     )
     _check_views(pixels, mask, skew)
+    if lens not in LENSES:
+        raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+    if lens == "fisheye":
+        if image_size is None:
+            raise ValueError(
+                "a fisheye's closed form puts the principal point at the image centre: give "
+                "`image_size=(width, height)`."
+            )
+        if not _validate.is_concrete(world, pixels, mask):
+            raise ValueError("calibrate_planar(lens='fisheye') needs concrete arrays (not traced).")
     dtype = world.dtype
     if _validate.is_concrete(world, mask):
         used = np.asarray(mask).any(0)
@@ -476,10 +596,17 @@ def calibrate_planar(
     else:
         plane = RigidTransform.identity(dtype)  # traced: the user's z = 0 plane is assumed
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
-    free_shared, free_pose = _free_masks(distortion, fix, skew, dtype)  # checks the names
+    distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
+    free_shared, free_pose = _free_masks(distortion, fix, skew, dtype, lens)  # checks the names
     skew = jnp.asarray(bool(skew))
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
-    H, seed, status, condition = _closed_form(world, plane, pixels, mask, skew, rcond, quick=quick)
+    if lens == "fisheye":
+        H, seed, status, condition = _fisheye_seed(world, plane, pixels, mask, image_size, rcond)
+        seed = jax.tree_util.tree_map(lambda x: x.astype(dtype), seed)
+    else:
+        H, seed, status, condition = _closed_form(
+            world, plane, pixels, mask, skew, rcond, quick=quick
+        )
     ok = status == Status.OK
     if refine:
         solver = default_solver(dtype) if solver is None else solver
