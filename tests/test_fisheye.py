@@ -1,0 +1,375 @@
+"""The fisheye lens (Kannala–Brandt, `cv2.fisheye`'s model): projection and rays against OpenCV,
+beyond 90 degrees, refinement, triangulation and derivatives."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from test_grad import check_derivatives
+
+import mvcalib as mc
+from mvcalib._refine import _pack, _pixel_jacobian, _unpack
+
+# Real lenses' coefficients are of this order (k1 < 0: the image compressed towards the rim);
+# theta_d stays below pi / 2 up to 85 degrees, where OpenCV's undistortPoints clamps it.
+DIST = np.array([-0.03, 0.004, -0.0006, 0.00003])
+
+
+def directions(n, max_degrees, seed):
+    """Unit rays up to `max_degrees` off the optical axis, uniform in angle and azimuth."""
+    rng = np.random.default_rng(seed)
+    theta = np.deg2rad(rng.uniform(0.0, max_degrees, n))
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    ray = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+    return ray, rng.uniform(0.5, 5.0, n)
+
+
+def one_camera(skew=0.0):
+    rvec, tvec = np.array([0.1, -0.2, 0.05]), np.array([0.1, 0.2, 0.3])
+    K = np.array([[410.0, skew, 655.0], [0.0, 405.0, 482.0], [0.0, 0.0, 1.0]])
+    R = cv2.Rodrigues(rvec)[0]
+    return mc.Camera.from_matrices(K, R, tvec, dist=DIST, lens="fisheye"), K, rvec, tvec
+
+
+def world_of(camera, camera_points):
+    """World points whose camera coordinates are `camera_points`: `R^T (x - t)`."""
+    return (camera_points - np.asarray(camera.t)) @ np.asarray(camera.R)
+
+
+def fisheye_ring(n_cameras, n_points=300, seed=0, field=110.0):
+    """Fisheye cameras round a room, each seeing the points within `field` degrees of its axis:
+    many of them beside or behind its image plane."""
+    rng = np.random.default_rng(seed)
+    a = 2.0 * np.pi * np.arange(n_cameras) / n_cameras + rng.uniform(-0.2, 0.2, n_cameras)
+    centres = np.stack([2 * np.cos(a), 2 * np.sin(a), rng.uniform(-0.3, 0.3, n_cameras)], -1)
+    R = []
+    for c in centres:
+        z = -c + rng.normal(0.0, 0.3, 3)
+        z /= np.linalg.norm(z)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        R.append(np.stack([x, np.cross(z, x), z]))
+    R = np.array(R)
+    t = -np.einsum("cij,cj->ci", R, centres)
+    dist = DIST * rng.uniform(0.5, 1.5, (n_cameras, 1))
+    focal = rng.uniform(280.0, 320.0, (2, n_cameras))
+    cameras = mc.Camera(*focal, 640.0, 480.0, R, t, dist=dist, lens="fisheye")
+    world = rng.uniform(-2.5, 2.5, (n_points, 3)) * [1.0, 1.0, 0.5]
+    xc = np.einsum("cij,nj->cni", R, world) + t[:, None]
+    angle = np.degrees(np.arctan2(np.linalg.norm(xc[..., :2], axis=-1), xc[..., 2]))
+    return cameras, world, angle < field, angle
+
+
+# ------------------------------------------------------------------------------ the model
+def test_projection_and_undistortion_equal_opencv_fisheye_up_to_85_degrees():
+    camera, K, rvec, tvec = one_camera(skew=0.7)
+    ray, depth = directions(2000, 85.0, seed=0)
+    world = world_of(camera, ray * depth[:, None])
+    ours = np.asarray(camera.project(world))
+    theirs = cv2.fisheye.projectPoints(world[:, None], rvec, tvec, K, DIST, alpha=0.7 / 410.0)[0]
+    np.testing.assert_allclose(ours, theirs[:, 0], rtol=0, atol=1e-9)
+    # cv2.fisheye.undistortPoints ignores K's skew on the distorted side: compared without it
+    camera, K, _, _ = one_camera()
+    pixels = np.asarray(camera.project(world))
+    ideal = np.asarray(mc.undistort_points(camera, pixels))
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-15)
+    theirs = cv2.fisheye.undistortPoints(pixels[:, None], K, DIST, P=K, criteria=criteria)[:, 0]
+    print(f"\nundistorted pixels up to {np.abs(ideal - K[:2, 2]).max():.0f} px from the centre")
+    np.testing.assert_allclose(ideal, theirs, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("max_degrees", [110.0, 175.0])
+def test_rays_round_trip_beyond_90_degrees(max_degrees):
+    camera, *_ = one_camera(skew=0.7)
+    ray, depth = directions(2000, max_degrees, seed=1)
+    back = np.asarray(camera.rays(camera.project(world_of(camera, ray * depth[:, None]))))
+    np.testing.assert_allclose(back, ray, rtol=0, atol=1e-10)
+    # a point on the optical axis, and the pinhole model's rays
+    assert np.allclose(camera.rays(camera.project(world_of(camera, np.array([[0, 0, 2.0]])))),
+                       [[0.0, 0.0, 1.0]], atol=1e-15)  # fmt: skip
+    pinhole = mc.Camera(800.0, 810.0, 320.0, 240.0, np.eye(3), np.zeros(3),
+                        dist=[-0.2, 0.05, 1e-3, -1e-3, 0.0])  # fmt: skip
+    ray, depth = directions(200, 40.0, seed=2)
+    np.testing.assert_allclose(pinhole.rays(pinhole.project(ray * depth[:, None])), ray, atol=1e-12)
+
+
+def test_pinhole_pixels_of_rays_beyond_90_degrees_are_nan():
+    camera, *_ = one_camera()
+    ray = np.array([[np.sin(a), 0.0, np.cos(a)] for a in np.deg2rad([30.0, 89.0, 91.0, 120.0])])
+    ideal = np.asarray(mc.undistort_points(camera, camera.project(world_of(camera, ray))))
+    assert np.isfinite(ideal[:2]).all() and np.isnan(ideal[2:]).all()
+
+
+def test_lens_and_coefficients_must_agree():
+    with pytest.raises(ValueError, match=r"lens='fisheye'"):
+        mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), dist=np.zeros(4))
+    with pytest.raises(ValueError, match=r"k1, k2, k3, k4"):
+        mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), dist=np.zeros(5), lens="fisheye")
+    with pytest.raises(ValueError, match="`lens` is one of"):
+        mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), lens="fish-eye")
+    camera = mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), lens="fisheye")
+    assert camera.dist.shape == (4,) and camera.lens == "fisheye"
+    # a rig keeps its lens through indexing and tree maps (it is static)
+    rig, *_ = fisheye_ring(3)
+    assert rig[1:].lens == "fisheye" and jax.tree_util.tree_map(lambda x: x, rig).lens == "fisheye"
+
+
+# ------------------------------------------------------------------------------ refinement
+def test_written_out_jacobian_equals_autodiff_on_and_off_the_axis():
+    camera, *_ = one_camera(skew=0.7)
+    ray, depth = directions(300, 170.0, seed=3)
+    points = ray * depth[:, None]
+    points[0] = [0.0, 0.0, 2.0]  # on the optical axis
+    world = jnp.asarray(world_of(camera, points))
+    p = _pack(camera)
+    ours = np.asarray(_pixel_jacobian(p, camera.R, world))
+    autodiff = np.asarray(jax.jacfwd(lambda p: _unpack(p, camera.R).project(world))(p))
+    np.testing.assert_allclose(ours, autodiff, rtol=0, atol=1e-13 * np.abs(autodiff).max())
+
+
+def test_refine_recovers_a_fisheye_camera_from_points_beyond_90_degrees():
+    truth, *_ = one_camera()
+    ray, depth = directions(300, 100.0, seed=4)
+    world = world_of(truth, ray * depth[:, None])
+    noise = 0.3 * np.random.default_rng(4).standard_normal((len(world), 2))
+    pixels = np.asarray(truth.project(world)) + noise
+    turn = cv2.Rodrigues(np.array([0.01, 0.02, -0.01]))[0]
+    seed = mc.Camera(430.0, 420.0, 645.0, 470.0, truth.R @ turn, truth.t + 0.01, lens="fisheye")
+    out = mc.refine(seed, world, pixels)
+    assert bool(out.ok) and out.parameter_names[-4:] == ("k1", "k2", "k3", "k4")
+    rms_truth = np.sqrt(np.mean(np.sum(noise**2, -1)))
+    before, after = float(out.rms_before), float(out.rms_after)
+    print(f"\nRMS {before:.1f} -> {after:.4f} px (truth {rms_truth:.4f})")
+    assert float(out.rms_after) <= rms_truth
+    for name in ("alpha_u", "alpha_v", "u0", "v0", "k1", "k2"):
+        value = getattr(out.cameras, name) if name[0] != "k" else out.cameras.dist[int(name[1]) - 1]
+        true = getattr(truth, name) if name[0] != "k" else truth.dist[int(name[1]) - 1]
+        assert abs(float(value - true)) < 4 * float(out.std(name)), name
+    with pytest.raises(
+        ValueError, match="unknown parameter .p1. in `distortion` of a fisheye camera"
+    ):
+        mc.refine(seed, world, pixels, distortion=("k1", "p1"))
+
+
+# ------------------------------------------------------------------------------ triangulation
+def test_triangulation_with_views_beside_and_behind_the_image_plane():
+    cameras, world, mask, angle = fisheye_ring(6, n_points=1000)
+    out = mc.triangulate(cameras, cameras.project(world), mask)
+    beyond = (mask & (angle > 100.0)).any(0)
+    print(f"\n{beyond.sum()} of {len(world)} points seen by a view more than 100 degrees off axis")
+    assert beyond.sum() >= 20 and (mask.sum(0) >= 2).all()
+    np.testing.assert_allclose(out.points, world, rtol=0, atol=1e-12)
+    assert np.asarray(out.ok).all() and float(out.rms.max()) < 1e-9
+    # only the views beyond 100 degrees: a pinhole path could not use one of them
+    pair = mc.triangulate(cameras, cameras.project(world), mask & (angle > 100.0))
+    seen = (mask & (angle > 100.0)).sum(0) >= 2
+    assert seen.sum() >= 5
+    np.testing.assert_allclose(np.asarray(pair.points)[seen], world[seen], rtol=0, atol=1e-11)
+
+
+def test_fisheye_error_falls_as_views_are_added_like_one_over_root_n():
+    cameras, world, _, _ = fisheye_ring(32, n_points=100, seed=5, field=180.0)
+    cameras = cameras[np.random.default_rng(5).permutation(32)]  # not in order round the room
+    pixels = cameras.project(world)
+    noise = 0.5 * jax.random.normal(jax.random.key(3), (50,) + pixels.shape)
+    curve = {}
+    for k in (2, 4, 8, 16, 32):
+        first_k = jnp.broadcast_to((jnp.arange(32) < k)[:, None], noise.shape[:-1])
+        out = mc.triangulate(cameras, pixels + noise, first_k)
+        curve[k] = float(jnp.sqrt(jnp.mean(jnp.sum((out.points - world) ** 2, -1))))
+    print("\n3-D RMS error (m) by number of views:", {k: round(v, 5) for k, v in curve.items()})
+    ks = sorted(curve)
+    assert all(curve[a] > curve[b] for a, b in zip(ks, ks[1:]))
+    assert 2.0 < curve[4] / curve[32] < 4.0
+
+
+# ------------------------------------------------------------------------------ derivatives
+def test_project_and_rays_derivatives_match_central_differences():
+    camera, *_ = one_camera(skew=0.7)
+    ray, depth = directions(40, 150.0, seed=6)
+    world = jnp.asarray(world_of(camera, ray * depth[:, None]))
+    check_derivatives(lambda a: a[0].project(a[1]), (camera, world), reverse=True)
+    pixels = camera.project(world)
+    check_derivatives(lambda a: a[0].rays(a[1]), (camera, pixels), reverse=True)
+
+
+def test_refine_gradient_matches_central_differences():
+    truth, *_ = one_camera()
+    ray, depth = directions(120, 100.0, seed=7)
+    world = world_of(truth, ray * depth[:, None])
+    pixels = truth.project(world) + 0.3 * np.random.default_rng(7).standard_normal((len(world), 2))
+    solver = optx.GaussNewton(rtol=1e-12, atol=1e-12)  # converged to rounding (see test_grad)
+    w = np.random.default_rng(8).standard_normal(5)
+
+    def f(px):
+        c = mc.refine(truth, world, px, solver=solver).cameras
+        return jnp.vdot(w, jnp.stack([c.alpha_u, c.v0, c.dist[0], c.dist[3], c.t[2]]))
+
+    grad = jax.jit(jax.value_and_grad(f))
+    v = np.random.default_rng(9).standard_normal(pixels.shape)
+    h = 1e-5  # px
+    difference = (float(grad(pixels + h * v)[0]) - float(grad(pixels - h * v)[0])) / (2 * h)
+    np.testing.assert_allclose(np.vdot(grad(pixels)[1], v), difference, rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------ rig files
+def test_rig_files_round_trip_exactly_with_their_lens(tmp_path):
+    cameras = fisheye_ring(4)[0]  # no skew: COLMAP has none
+    saved = {
+        "json": mc.io.load_json(mc.io.save_json(tmp_path / "rig.json", cameras)),
+        "opencv": mc.io.load_opencv(mc.io.save_opencv(tmp_path / "rig.yml", cameras)),
+        "colmap": mc.io.load_colmap(mc.io.save_colmap(tmp_path / "colmap", cameras, (1280, 960))),
+    }
+    for kind, (back, _) in saved.items():
+        assert back.lens == "fisheye", kind
+        for name in ("alpha_u", "alpha_v", "dist", "R", "t"):
+            exact = kind != "colmap" or name in ("alpha_u", "alpha_v", "dist")
+            a, b = np.asarray(getattr(back, name)), np.asarray(getattr(cameras, name))
+            if exact:  # COLMAP stores quaternions, and pixel centres 0.5 px off
+                np.testing.assert_array_equal(a, b, err_msg=f"{kind} {name}")
+            else:
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-15, err_msg=f"{kind} {name}")
+    # OpenCV reads the YAML, and its fisheye projection of it is ours
+    storage = cv2.FileStorage(str(tmp_path / "rig.yml"), cv2.FILE_STORAGE_READ)
+    node = storage.getNode("cam_2")
+    assert node.getNode("distortion_model").string() == "equidistant"
+    K, D = node.getNode("camera_matrix").mat(), node.getNode("distortion_coefficients").mat()
+    R, T = node.getNode("R").mat(), node.getNode("T").mat()
+    world = np.random.default_rng(0).uniform(-1.0, 1.0, (20, 3))
+    theirs = cv2.fisheye.projectPoints(world[:, None], cv2.Rodrigues(R)[0], T, K, D)[0][:, 0]
+    np.testing.assert_allclose(cameras[2].project(world), theirs, rtol=0, atol=1e-9)
+    # COLMAP's text names the model
+    assert (tmp_path / "colmap" / "cameras.txt").read_text().count("OPENCV_FISHEYE") == 4
+
+
+def test_an_aniposelib_fisheye_file_projects_as_opencv_fisheye(tmp_path):
+    rvec, tvec = np.array([0.2, -0.1, 0.3]), np.array([0.1, -0.2, 1.5])
+    K = [[600.0, 0.0, 640.0], [0.0, 610.0, 360.0], [0.0, 0.0, 1.0]]
+    path = tmp_path / "calibration.toml"
+    path.write_text(
+        f"[cam_0]\nname = 'A'\nsize = [1280, 720]\nmatrix = {K}\nfisheye = true\n"
+        f"distortions = {DIST.tolist()}\nrotation = {rvec.tolist()}\n"
+        f"translation = {tvec.tolist()}\n"
+    )
+    cameras, names = mc.io.load_aniposelib(path)
+    assert cameras.lens == "fisheye" and names == ["A"]
+    ray, depth = directions(50, 85.0, seed=8)
+    R = cv2.Rodrigues(rvec)[0]
+    world = (ray * depth[:, None] - tvec) @ R
+    theirs = cv2.fisheye.projectPoints(world[:, None], rvec, tvec, np.array(K), DIST)[0][:, 0]
+    np.testing.assert_allclose(cameras[0].project(world), theirs, rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ planar target
+IMAGE = (1280, 960)
+# a 190 degree lens on a 1280 x 960 sensor: 95 degrees off axis land 481 px from the centre
+LENS = dict(alpha_u=300.0, alpha_v=301.0, u0=641.3, v0=478.2, dist=[-0.02, 0.003, -4e-4, 2e-5])
+BOARD = 0.03 * np.stack(np.meshgrid(np.arange(12.0), np.arange(9.0)), -1).reshape(-1, 2)
+BOARD = np.concatenate([BOARD - BOARD.mean(0), np.zeros((len(BOARD), 1))], 1)  # 9 x 12, 3 cm
+
+
+def board_views(n_views, max_degrees, field, seed):
+    """A 9 x 12 board 0.25-0.5 m away, its centre up to `max_degrees` off the optical axis,
+    tilted, seen by the 190 degree lens up to `field` degrees off axis; 0.3 px of noise."""
+    rng = np.random.default_rng(seed)
+    pixels, masks = [], []
+    while len(pixels) < n_views:
+        a, phi = np.deg2rad(rng.uniform(0.0, max_degrees)), rng.uniform(0.0, 2.0 * np.pi)
+        direction = np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
+        z = direction @ cv2.Rodrigues(rng.normal(0.0, 0.35, 3))[0].T  # the board's normal
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        spin = cv2.Rodrigues(np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi)]))[0]
+        R, t = np.stack([x, np.cross(z, x), z], 1) @ spin, direction * rng.uniform(0.25, 0.5)
+        camera = mc.Camera(R=R, t=t, lens="fisheye", **LENS)
+        xc = BOARD @ R.T + t
+        angle = np.degrees(np.arctan2(np.linalg.norm(xc[:, :2], axis=1), xc[:, 2]))
+        p = np.asarray(camera.project(BOARD))
+        seen = (angle < field) & np.all((p >= 0) & (p <= np.array(IMAGE) - 1), axis=1)
+        if seen.sum() >= 60:
+            pixels.append(p + 0.3 * rng.standard_normal(p.shape))
+            masks.append(seen)
+    return np.where(np.array(masks)[..., None], pixels, np.nan), np.array(masks)
+
+
+def test_planar_fisheye_calibration_equals_opencv_fisheye():
+    """20 views of a board within 88 degrees of the axis (cv2.fisheye cannot take rays beyond
+    90): mvcalib from the image size alone, OpenCV from the true K as its intrinsic guess. Both
+    reach the same optimum; a pinhole with five coefficients cannot fit the lens."""
+    pixels, mask = board_views(20, 70.0, 88.0, seed=0)
+    ours = mc.calibrate_planar(BOARD, pixels, mask, lens="fisheye", image_size=IMAGE)
+    assert bool(ours.ok.all()) and bool(ours.converged) and ours.camera.lens == "fisheye"
+    objects = [BOARD[m][:, None] for m in mask]
+    images = [p[m][:, None] for p, m in zip(pixels, mask)]
+    flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+    guess = np.array([[300.0, 0.0, 640.0], [0.0, 300.0, 480.0], [0.0, 0.0, 1.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    rms, K, D, _, _ = cv2.fisheye.calibrate(
+        objects, images, IMAGE, guess, np.zeros(4),
+        flags=flags | cv2.fisheye.CALIB_USE_INTRINSIC_GUESS, criteria=criteria,
+    )  # fmt: skip
+    # (without the guess OpenCV starts from f = max(width, height) / pi = 407 px and diverged:
+    # RMS 4230 px on these views)
+    pinhole = mc.calibrate_planar(BOARD, pixels, mask, distortion="distortion")
+    print(f"\nRMS: mvcalib {float(ours.rms):.6f} px, cv2.fisheye {rms:.6f} px, "
+          f"pinhole k1 k2 p1 p2 k3 {float(pinhole.rms):.3f} px")  # fmt: skip
+    assert abs(float(ours.rms) - rms) <= 1e-3 * rms  # the issue asks for 1 %
+    np.testing.assert_allclose(ours.K, K, rtol=1e-5)
+    np.testing.assert_allclose(ours.dist, D.ravel(), rtol=0, atol=1e-5)
+    assert float(pinhole.rms) > 5.0 * float(ours.rms)
+    truth = np.array([LENS["alpha_u"], LENS["alpha_v"], LENS["u0"], LENS["v0"]])
+    found = np.asarray(ours.K)[[0, 1, 0, 1], [0, 1, 2, 2]]
+    assert np.all(np.abs(found - truth) < [1.0, 1.0, 0.5, 0.5])  # px
+
+
+def test_planar_fisheye_calibration_takes_rays_beyond_90_degrees():
+    pixels, mask = board_views(20, 80.0, 95.0, seed=1)
+    lens = mc.Camera(R=np.eye(3), t=np.zeros(3), lens="fisheye", **LENS)
+    beyond = np.asarray(lens.rays(pixels[mask]))[:, 2] < 0  # beyond 90 degrees
+    assert beyond.sum() >= 10
+    out = mc.calibrate_planar(BOARD, pixels, mask, lens="fisheye", image_size=IMAGE)
+    assert bool(out.ok.all()) and bool(out.converged)
+    print(f"\n{beyond.sum()} points beyond 90 degrees; RMS {float(out.rms):.4f} px; "
+          f"K {np.round(np.asarray(out.K)[[0, 1, 0, 1], [0, 1, 2, 2]], 3).tolist()}")  # fmt: skip
+    assert float(out.rms) < 0.3 * np.sqrt(2) * 1.02
+    np.testing.assert_allclose(np.asarray(out.K)[[0, 1], [0, 1]], [300.0, 301.0], rtol=2e-3)
+    with pytest.raises(ValueError, match="image_size"):
+        mc.calibrate_planar(BOARD, pixels, mask, lens="fisheye")
+
+
+# ------------------------------------------------------------------------------ rigs
+def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
+    cameras, world, mask, angle = fisheye_ring(6, n_points=300, seed=4)
+    rng = np.random.default_rng(4)
+    pixels = np.asarray(cameras.project(world)) + 0.3 * rng.standard_normal((6, 300, 2))
+    pixels = np.where(mask[..., None], pixels, np.nan)
+    seed = mc.Camera(cameras.alpha_u * 1.02, cameras.alpha_v, cameras.u0, cameras.v0,
+                     cameras.R, cameras.t + 0.01, lens="fisheye")  # fmt: skip
+    out = mc.refine_rig(seed, world, pixels, mask)
+    assert bool(out.ok) and out.cameras.lens == "fisheye"
+    assert np.all(np.asarray(out.rms_after) < 0.3 * np.sqrt(2) * 1.1)
+    assert np.abs(np.asarray(out.cameras.alpha_u - cameras.alpha_u)).max() < 1.0  # px
+    # a board moved through the room; the rig's intrinsics start 1 % off, the poses unknown
+    F, board = 40, BOARD
+    pixels = np.full((6, F, len(board), 2), np.nan)
+    for f in range(F):
+        Rb = cv2.Rodrigues(rng.normal(0.0, 1.0, 3))[0]
+        tb = rng.uniform(-0.8, 0.8, 3) * [1.0, 1.0, 0.3]
+        X = board @ Rb.T + tb
+        xc = np.asarray(cameras.to_camera(X))
+        off_axis = np.degrees(np.arctan2(np.linalg.norm(xc[..., :2], axis=-1), xc[..., 2]))
+        towards = np.asarray(cameras.center) - tb
+        facing = np.abs(towards @ Rb[:, 2]) / np.linalg.norm(towards, axis=1) > 0.2
+        seen = (off_axis < 100.0) & facing[:, None]
+        p = np.asarray(cameras.project(X)) + 0.3 * rng.standard_normal((6, len(board), 2))
+        pixels[:, f] = np.where(seen[..., None], p, np.nan)
+    start = mc.Camera(cameras.alpha_u * 1.01, cameras.alpha_v, cameras.u0, cameras.v0,
+                      cameras.R, cameras.t, dist=cameras.dist * 0.5, lens="fisheye")  # fmt: skip
+    rig = mc.calibrate_rig(board, pixels, cameras=start)
+    assert bool(rig.ok.all()) and rig.parameter_names[-4:] == ("k1", "k2", "k3", "k4")
+    centres = np.asarray(cameras[0].to_camera(cameras.center))  # in camera 0's frame
+    error = np.linalg.norm(np.asarray(rig.cameras.center) - centres, axis=1)
+    print(f"\nboard rig: RMS {float(rig.rms):.4f} px, centres within {error.max() * 1e3:.1f} mm")
+    assert float(rig.rms) < 0.3 * np.sqrt(2) * 1.05 and error.max() < 0.01  # m, of 4 m
