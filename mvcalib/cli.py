@@ -87,7 +87,7 @@ files:
 
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
-_DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+_DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4")  # a pinhole's and a fisheye's (k1..k4)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -206,9 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     rig.add_argument(
         "--distortion",
         type=_distortion,
-        default=("k1", "k2", "p1", "p2"),
         metavar="LIST",
-        help="the distortion coefficients estimated (default k1,k2,p1,p2; or none)",
+        help="the distortion coefficients estimated (default k1,k2,p1,p2; of fisheye cameras "
+        "from --intrinsics k1,k2,k3,k4; or none)",
     )
     rig.add_argument(
         "--reference",
@@ -654,7 +654,7 @@ def _calibrate_rig(args) -> int:
         "observations": str(args.observations),
         "intrinsics": None if args.intrinsics is None else str(args.intrinsics),
         "fix": list(args.fix),
-        "distortion": list(args.distortion),
+        "distortion": [n for n in result.parameter_names if n[0] in "kp"],
         "reference": reference,
         "loss": None if args.huber is None else {"huber": args.huber},
         "rms": number(result.rms),

@@ -123,7 +123,8 @@ def test_flags_reach_calibrate_rig(tmp_path, capsys, cache_off, monkeypatch):
     assert capsys.readouterr().err.count("mvcalib: error: spied") == 3
     (shape, plain), (_, robust), (_, started) = seen
     assert shape == (4, 3, 108, 2)
-    assert plain == dict(cameras=None, fix=(), distortion=("k1", "k2", "p1", "p2"),
+    # (distortion None: the lens's default, k1 k2 p1 p2 of a pinhole, k1..k4 of a fisheye)
+    assert plain == dict(cameras=None, fix=(), distortion=None,
                          reference=0, loss=None, verbose=False)  # fmt: skip
     assert robust["loss"] == mc.Huber(2.0) and robust["reference"] == "target"
     assert robust["distortion"] == ("k1", "k2")

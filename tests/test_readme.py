@@ -216,6 +216,16 @@ def test_readme_derivative_predicts_the_errors(readme):
     assert all(abs(e) <= 4 * s for e, s in zip(error, std)), run.stdout
 
 
+def test_readme_fisheye_prints_what_it_says(readme):
+    """The fisheye block's printed pixel and ray are those in its comment."""
+    i = _block_with('lens="fisheye"')
+    run = readme.python(i)
+    assert run.returncode == 0, run.stderr
+    said = BLOCKS[i][1].split("# [[", 1)[1]
+    numbers = lambda text: [float(x) for x in re.findall(r"-?\d+\.?\d*", text)]  # noqa: E731
+    assert numbers(run.stdout) == numbers("[[" + said)
+
+
 def test_readme_sharding_splits_the_cameras(readme):
     run = readme.python(_block_with("mc.shard("))
     assert run.returncode == 0, run.stderr
