@@ -81,6 +81,7 @@ def _camera_arrays(camera: Camera) -> dict[str, np.ndarray]:
         "t": np.asarray(camera.t, dtype=float),
         "dist": np.asarray(camera.dist, dtype=float),
         "center": np.asarray(camera.center, dtype=float),
+        "lens": camera.lens,
     }
 
 
@@ -112,12 +113,15 @@ def _project_rims(camera: Camera, target: Target, normals: np.ndarray, n: int) -
 
 def _facing(camera: Camera, target: Target, normals: np.ndarray, n: int) -> np.ndarray:
     """Dots whose face the camera sees from the front and whose whole rim (`n` points) lies in
-    front of the camera."""
+    front of the camera (a fisheye's: within 160 degrees of its axis)."""
     cam = _camera_arrays(camera)
     points = np.asarray(target.points, float)
     facing = np.einsum("ij,ij->i", cam["center"] - points, normals) > 0
-    rims = _boundary(target, normals, n)
-    return facing & ((rims @ cam["R"].T + cam["t"])[..., 2].min(axis=1) > 0)
+    rims = _boundary(target, normals, n) @ cam["R"].T + cam["t"]
+    if cam["lens"] == "fisheye":
+        cosine = rims[..., 2] / np.linalg.norm(rims, axis=-1)
+        return facing & (cosine.min(axis=1) > np.cos(np.deg2rad(160.0)))
+    return facing & (rims[..., 2].min(axis=1) > 0)
 
 
 def visible_dots(
@@ -254,6 +258,21 @@ def _undistort(xd: np.ndarray, dist: np.ndarray, iterations: int = 20) -> np.nda
     return np.stack([x, y], -1)
 
 
+def _fisheye_rays(xd: np.ndarray, dist: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Unit rays `(..., 3)` of a fisheye's distorted normalised coordinates `(..., 2)`: the angle
+    `theta` from `theta_d` by Newton's method (as `Camera.rays`)."""
+    k1, k2, k3, k4 = dist
+    theta_d = np.linalg.norm(xd, axis=-1)
+    theta = theta_d.copy()
+    for _ in range(iterations):
+        t2 = theta * theta
+        value = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        slope = 1.0 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        theta = np.clip(theta - (value - theta_d) / slope, 0.0, np.pi)
+    scale = np.where(theta_d > 0, np.sin(theta) / np.where(theta_d > 0, theta_d, 1.0), 1.0)
+    return np.concatenate([xd * scale[..., None], np.cos(theta)[..., None]], -1)
+
+
 def _samples(x0: int, x1: int, y0: int, y1: int, s: int):
     """Sub-pixel sample positions of the pixel block [x0, x1) x [y0, y1), s x s per pixel."""
     offsets = (np.arange(s) + 0.5) / s - 0.5
@@ -273,6 +292,7 @@ def _draw_dots(cover, cam, target, normals, px_rims, draw, s):
     e1, e2 = _plane_basis(normals)
     points = np.asarray(target.points, float)
     distorted = bool(np.any(cam["dist"] != 0))
+    fisheye = cam["lens"] == "fisheye"
     for i in np.flatnonzero(draw):
         radius = float(target.radii[i])
         # Plane (a, b) -> normalised camera coordinates: [x, y, 1] ~ G [a, b, 1] with
@@ -280,7 +300,13 @@ def _draw_dots(cover, cam, target, normals, px_rims, draw, s):
         G = np.stack([cam["R"] @ e1[i], cam["R"] @ e2[i], cam["R"] @ points[i] + cam["t"]], 1)
         Ginv = np.linalg.inv(G) @ Kinv  # pixel -> plane, for undistorted pixels
 
-        def on_dot(X, Y, Ginv=Ginv, radius=radius):
+        def on_dot(X, Y, G=G, Ginv=Ginv, radius=radius):
+            if fisheye:  # the sample's ray, through the plane: in front along the ray only
+                yn = Kinv[1, 1] * Y + Kinv[1, 2]
+                xn = Kinv[0, 0] * X + Kinv[0, 1] * Y + Kinv[0, 2]
+                ray = _fisheye_rays(np.stack([xn, yn], -1), cam["dist"])
+                a, b, w = np.moveaxis(ray @ np.linalg.inv(G).T, -1, 0)
+                return (w > 0) & (a * a + b * b <= (radius * w) ** 2)
             if distorted:
                 xn = Kinv[0, 0] * X + Kinv[0, 1] * Y + Kinv[0, 2]
                 yn = Kinv[1, 1] * Y + Kinv[1, 2]
