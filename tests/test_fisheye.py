@@ -1,6 +1,8 @@
 """The fisheye lens (Kannala–Brandt, `cv2.fisheye`'s model): projection and rays against OpenCV,
 beyond 90 degrees, refinement, triangulation and derivatives."""
 
+import dataclasses
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -373,3 +375,45 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
     error = np.linalg.norm(np.asarray(rig.cameras.center) - centres, axis=1)
     print(f"\nboard rig: RMS {float(rig.rms):.4f} px, centres within {error.max() * 1e3:.1f} mm")
     assert float(rig.rms) < 0.3 * np.sqrt(2) * 1.05 and error.max() < 0.01  # m, of 4 m
+
+
+# ------------------------------------------------------------------------------ photographs
+def test_photographs_of_a_dot_grid_calibrate_a_fisheye():
+    """Rendered photos of a 7 x 9 dot grid through the 190 degree lens, boards up to 75 degrees
+    off axis: detected, labelled with no clicks (`label_grid` grows its lattice by local
+    homographies: the board is curved in the picture), calibrated; a view that cannot be
+    labelled is flagged, and none is labelled wrongly."""
+    camera = mc.Camera(R=np.eye(3), t=np.zeros(3), lens="fisheye", **LENS)
+    grid = mc.targets.dot_grid(7, 9, 0.03)
+    rng = np.random.default_rng(0)
+    pixels, masks, flagged = [], [], 0
+    while len(pixels) < 8:
+        a, phi = np.deg2rad(rng.uniform(0.0, 75.0)), rng.uniform(0.0, 2.0 * np.pi)
+        direction = np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
+        z = -direction @ cv2.Rodrigues(rng.normal(0.0, 0.3, 3))[0].T  # the board's normal
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z], 1)
+        points = (grid.points - grid.points.mean(0)) @ R.T + direction * rng.uniform(0.25, 0.4)
+        board = dataclasses.replace(grid, points=points)
+        normals = np.tile(z, (len(points), 1))  # towards the camera
+        image = mc.synthetic.render(camera, board, IMAGE, normals=normals, blur_sigma=0.7,
+                                    key=len(pixels) + flagged)  # fmt: skip
+        labels = mc.label_grid(mc.detect_dots(image), 7, 9)
+        if not labels.ok:
+            flagged += 1
+            continue
+        ids = np.flatnonzero(labels.mask)
+        truth = np.asarray(camera.project(points))
+        error = min(np.abs(labels.pixels[ids] - truth[i]).max() for i in (ids, 62 - ids))
+        assert error < 0.5, "a view labelled wrongly"  # (up to the grid's half turn)
+        pixels.append(labels.pixels)
+        masks.append(labels.mask)
+    out = mc.calibrate_planar(grid.points, np.array(pixels), np.array(masks), lens="fisheye",
+                              image_size=IMAGE)  # fmt: skip
+    K = np.asarray(out.K)
+    print(f"\n8 views labelled, {flagged} flagged; RMS {float(out.rms):.4f} px; "
+          f"f {K[0, 0]:.3f} {K[1, 1]:.3f}, centre {K[0, 2]:.3f} {K[1, 2]:.3f}")  # fmt: skip
+    assert bool(out.ok.all()) and float(out.rms) < 0.05
+    np.testing.assert_allclose(K[[0, 1], [0, 1]], [300.0, 301.0], rtol=1e-3)
+    np.testing.assert_allclose(K[:2, 2], [641.3, 478.2], atol=0.3)
