@@ -213,4 +213,5 @@ def to_global(cameras: Camera, transform: RigidTransform) -> Camera:
         t,
         skew=cameras.skew,
         dist=cameras.dist,
+        lens=cameras.lens,
     )

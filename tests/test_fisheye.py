@@ -114,8 +114,16 @@ def test_lens_and_coefficients_must_agree():
     camera = mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), lens="fisheye")
     assert camera.dist.shape == (4,) and camera.lens == "fisheye"
     # a rig keeps its lens through indexing and tree maps (it is static)
-    rig, *_ = fisheye_ring(3)
+    rig, world, mask, _ = fisheye_ring(3)
     assert rig[1:].lens == "fisheye" and jax.tree_util.tree_map(lambda x: x, rig).lens == "fisheye"
+    # and through the functions that take a rig: to_global, reproject, reprojection_report
+    T = mc.RigidTransform(mc.rodrigues(jnp.array([0.1, 0.2, 0.3])), jnp.array([1.0, 2.0, 3.0]))
+    moved = mc.to_global(rig, T)
+    assert moved.lens == "fisheye"
+    np.testing.assert_allclose(moved.project(T.apply(world)), rig.project(world), atol=1e-9)
+    pixels = mc.reproject(rig, world)
+    report = mc.reprojection_report(rig, world, pixels, mask)
+    assert float(np.max(report.rms)) < 1e-12
 
 
 # ------------------------------------------------------------------------------ refinement
