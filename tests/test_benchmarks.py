@@ -137,3 +137,37 @@ def test_first_call_times_fresh_processes_against_opencv(tmp_path, monkeypatch, 
     assert even["mvcalib_refine"]["through"] == even["opencv"]["through"] == [4, 8]
     out = capsys.readouterr().out
     assert "break-even" in out and "cv2.calibrateCamera loop" in out
+
+
+def test_fisheye_benchmark_smoke(tmp_path, monkeypatch, capsys):
+    # mvcalib's fisheye lens against cv2.fisheye at toy sizes: projection, unprojection, planar
+    # calibration and pose refinement, each timed against OpenCV and checked against it
+    fisheye = benchmark_module("fisheye")
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path)
+    payload = fisheye.main(["--smoke"])
+    assert json.loads((tmp_path / "fisheye.json").read_text()) == json.loads(json.dumps(payload))
+    assert payload["mode"] == "quick" and payload["settings"]["mode"] == "smoke"
+    rows = {r["path"]: r for r in payload["results"]}
+    assert all(r["median_s"] > 0 and r["repeats"] >= 1 for r in rows.values())
+    # the same model: OpenCV's pixels and ideal pixels are mvcalib's, up to rounding
+    assert rows["cv2.fisheye.projectPoints"]["max_abs_diff_vs_mvcalib_px"] < 1e-9
+    assert rows["mvcalib undistort_points"]["max_abs_error_vs_exact_px"] < 1e-9
+    assert rows["cv2.fisheye.undistortPoints tight"]["max_abs_diff_vs_mvcalib_px"] < 1e-9
+    # the same optimum of the planar calibration; mvcalib from the image size alone
+    theirs = rows["cv2.fisheye.calibrate (K guess)"]
+    assert rows["mvcalib calibrate_planar"]["ok"] and theirs["rms_rel_diff_vs_mvcalib"] < 1e-6
+    assert rows["mvcalib calibrate_planar"]["compile_s"] > 0
+    # pose refinement: every camera converges; solvePnP minimises on the normalised plane, so
+    # its pixel RMS is never below mvcalib's while its own cost is never above
+    C = payload["settings"]["refinement"]["n_cameras"]
+    pose, pnp = rows["mvcalib refine pose"], rows["cv2.fisheye.solvePnP loop"]
+    assert pose["ok"] == C and pose["rms_report_vs_projection_max_abs_diff_px"] < 1e-9
+    assert pnp["cameras_with_rms_below_mvcalib"] == 0
+    assert pnp["cameras_with_normalised_cost_at_most_mvcalib"] == C
+    assert pnp["rotation_max_diff_vs_mvcalib_rad"] < 0.05
+    cloud = payload["details"]["refinement"]["cv2_fisheye_calibrate_on_3d_cloud"]
+    assert cloud["raised"] + cloud["finished"] == cloud["cameras"] > 0
+    assert payload["summary"] and all(r["us"] > 0 for r in payload["summary"])
+    mvcalib_rows = [r for r in payload["summary"] if r["path"].startswith("mvcalib")]
+    assert mvcalib_rows and all(r["peer_over_mvcalib"] == 1.0 for r in mvcalib_rows)
+    assert "peer/mvcalib" in capsys.readouterr().out
