@@ -269,27 +269,33 @@ def _equidistant_rays(pixels, centre, focal):
     return np.concatenate([np.sin(theta) * unit, np.cos(theta)], -1)
 
 
-def _ray_homography(a, d):
-    """The homography `H` with `d ~ H (a, 1)` for plane points `a (n, 2)` and unit rays `d (n, 3)`
-    (a ray's sign is free: rays beyond 90 degrees fit as well), by the SVD of the three rows of
-    `d x H a` per point; with its singular values and the sine of each point's angle from its
-    fitted ray."""
+def _ray_homographies(a, d, seen):
+    """For every view, the homography `H` with `d ~ H (a, 1)` for the plane points `a (N, 2)` and
+    the unit rays `d (V, N, 3)` of the points `seen (V, N)` (a ray's sign is free: rays beyond 90
+    degrees fit as well): the null vector of the three rows of `d x H a` per point, from the 9 x 9
+    normal matrix of each view (all views in one batched `eigh`). Returns `H (V, 3, 3)`, the rows
+    `(V, N, 3, 9)` (zero where not seen) and the sine of each point's angle from its fitted ray
+    `(V, N)` (zero where not seen)."""
     n = len(a)
     ah = np.concatenate([a, np.ones((n, 1))], 1)
     kron = np.einsum("ij,nk->nijk", np.eye(3), ah).reshape(n, 3, 9)  # H ah = kron @ vec(H)
-    rows = np.einsum("nij,njk->nik", _cross_matrices(d), kron).reshape(-1, 9)
-    _, sv, vt = np.linalg.svd(rows, full_matrices=False)
-    H = vt[-1].reshape(3, 3)
-    fitted = ah @ H.T
-    fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
-    return H, sv, np.linalg.norm(np.cross(d, fitted), axis=1)
+    rows = (_cross_matrices(d) @ kron) * seen[..., None, None]  # (V, N, 3, 9)
+    flat = rows.reshape(len(rows), -1, 9)
+    normal = flat.transpose(0, 2, 1) @ flat
+    H = np.linalg.eigh(normal)[1][..., 0].reshape(-1, 3, 3)
+    fitted = ah @ H.transpose(0, 2, 1)
+    fitted /= np.linalg.norm(fitted, axis=-1, keepdims=True)
+    sine = np.linalg.norm(np.cross(d, fitted), axis=-1) * seen
+    return H, rows, sine
 
 
 def _cross_matrices(d):
-    zero = np.zeros(len(d))
-    return np.stack([np.stack([zero, -d[:, 2], d[:, 1]], -1),
-                     np.stack([d[:, 2], zero, -d[:, 0]], -1),
-                     np.stack([-d[:, 1], d[:, 0], zero], -1)], 1)  # fmt: skip
+    """`[d]_x (..., 3, 3)` of vectors `d (..., 3)`."""
+    zero = np.zeros(d.shape[:-1])
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return np.stack([np.stack([zero, -z, y], -1),
+                     np.stack([z, zero, -x], -1),
+                     np.stack([-y, x, zero], -1)], -2)  # fmt: skip
 
 
 def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
@@ -305,15 +311,14 @@ def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
     T = np.asarray(_similarity(jnp.asarray(xy), jnp.asarray(mask.any(0), xy.dtype))[0])
     a = xy @ T[:2, :2].T + T[:2, 2]  # Hartley's normalisation of the plane points
 
+    seen_pixels = np.where(mask[..., None], pixels, centre)  # (hidden ones: any finite pixel)
+
     def fit(focal):
-        out = []
-        for view, seen in zip(pixels, mask):
-            out.append(_ray_homography(a[seen], _equidistant_rays(view[seen], centre, focal)))
-        return out
+        return _ray_homographies(a, _equidistant_rays(seen_pixels, centre, focal), mask)
 
     def cost(log_focal):  # the angles as pixels of the lens: sum of squares
         focal = np.exp(log_focal)
-        return sum(float(np.sum((focal * e) ** 2)) for _, _, e in fit(focal))
+        return float(np.sum((focal * fit(focal)[2]) ** 2))
 
     r_max = max(float(np.max(np.linalg.norm(pixels[mask] - centre, axis=-1))), 1.0)
     grid = np.log(np.geomspace(r_max / 3.0, 20.0 * r_max, 40))
@@ -326,7 +331,8 @@ def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
     focal = float(np.exp((lo + hi) / 2.0))
 
     H, R, t, status, condition = [], [], [], [], []
-    for (Hn, sv, _), view, seen in zip(fit(focal), pixels, mask):
+    for Hn, rows, view, seen in zip(*fit(focal)[:2], pixels, mask):
+        sv = np.linalg.svd(rows.reshape(-1, 9), compute_uv=False)  # (squares lose the small ones)
         M = Hn @ T  # plane coordinates to rays
         lam = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
         d = _equidistant_rays(view[seen], centre, focal)
