@@ -363,61 +363,57 @@ def bench_calibration(mode):
         no_guess = {"rms_px": None, "K": None, "error": cv2_message(e)}
     rms = float(result.rms)
     setting = f"{n_views} views, 9x12"
-    common = {"benchmark": "fisheye calibration", "setting": setting}
+    timed = lambda path, key, **extra: row(  # noqa: E731
+        "fisheye calibration", setting, path, stats[key], 1, stats["mvcalib"], **extra
+    )
     rows = [
-        common
-        | {
-            "path": "mvcalib calibrate_planar",
-            "median_s": stats["mvcalib"]["median"],
-            "q1_s": stats["mvcalib"]["q1"],
-            "q3_s": stats["mvcalib"]["q3"],
-            "repeats": stats["mvcalib"]["repeats"],
-            "first_call_s": first,
-            "warm_call_s": warm,
-            "compile_s": first - warm,
-            "peer_over_mvcalib": 1.0,
-            "rms_px": rms,
-            "ok": bool(np.asarray(result.ok).all()) and bool(result.converged),
-            "K": np.asarray(result.K).tolist(),
-            "dist": np.asarray(result.dist).tolist(),
-        },
-        common
-        | {
-            "path": "cv2.fisheye.calibrate (K guess)",
-            "median_s": stats["cv2"]["median"],
-            "q1_s": stats["cv2"]["q1"],
-            "q3_s": stats["cv2"]["q3"],
-            "repeats": stats["cv2"]["repeats"],
-            "first_call_s": cv_first,
-            "compile_s": None,
-            "peer_over_mvcalib": stats["cv2"]["median"] / stats["mvcalib"]["median"],
-            "rms_px": float(cv_rms),
-            "rms_rel_diff_vs_mvcalib": abs(cv_rms - rms) / cv_rms,
-            "K": K.tolist(),
-            "dist": D.tolist(),
-            "K_max_rel_diff_vs_mvcalib": float(
-                np.max(np.abs(np.asarray(result.K) - K)[[0, 1, 0, 1], [0, 1, 2, 2]] / K[0, 0])
-            ),
-            "dist_max_abs_diff_vs_mvcalib": float(np.max(np.abs(np.asarray(result.dist) - D))),
-        },
+        timed(
+            "mvcalib calibrate_planar",
+            "mvcalib",
+            **{
+                "first_call_s": first,
+                "warm_call_s": warm,
+                "compile_s": first - warm,
+                "peer_over_mvcalib": 1.0,
+                "rms_px": rms,
+                "ok": bool(np.asarray(result.ok).all()) and bool(result.converged),
+                "K": np.asarray(result.K).tolist(),
+                "dist": np.asarray(result.dist).tolist(),
+            },
+        ),
+        timed(
+            "cv2.fisheye.calibrate (K guess)",
+            "cv2",
+            **{
+                "first_call_s": cv_first,
+                "compile_s": None,
+                "rms_px": float(cv_rms),
+                "rms_rel_diff_vs_mvcalib": abs(cv_rms - rms) / cv_rms,
+                "K": K.tolist(),
+                "dist": D.tolist(),
+                "K_max_rel_diff_vs_mvcalib": float(
+                    np.max(np.abs(np.asarray(result.K) - K)[[0, 1, 0, 1], [0, 1, 2, 2]] / K[0, 0])
+                ),
+                "dist_max_abs_diff_vs_mvcalib": float(np.max(np.abs(np.asarray(result.dist) - D))),
+            },
+        ),
     ]
     if "seed" in fns:
         rows.append(
-            common
-            | {
-                "path": "mvcalib calibrate_planar seed",
-                "median_s": stats["seed"]["median"],
-                "q1_s": stats["seed"]["q1"],
-                "q3_s": stats["seed"]["q3"],
-                "repeats": stats["seed"]["repeats"],
-                "first_call_s": seed_first,
-                "warm_call_s": seed_warm,
-                "compile_s": seed_first - seed_warm,
-                # the closed-form seed's share of the full calibration, not a peer's ratio
-                "peer_over_mvcalib": None,
-                "share_of_calibrate_planar": stats["seed"]["median"] / stats["mvcalib"]["median"],
-                "rms_px": float(seed.rms),
-            }
+            timed(
+                "mvcalib calibrate_planar seed",
+                "seed",
+                **{
+                    "first_call_s": seed_first,
+                    "warm_call_s": seed_warm,
+                    "compile_s": seed_first - seed_warm,
+                    # the closed-form seed's share of the full calibration, not a peer's ratio
+                    "peer_over_mvcalib": None,
+                    "share_of_calibrate_planar": stats["seed"]["median"]
+                    / stats["mvcalib"]["median"],
+                    "rms_px": float(seed.rms),
+                },
+            )
         )
     truth = np.array([LENS["alpha_u"], LENS["alpha_v"], LENS["u0"], LENS["v0"]])
     found = np.asarray(result.K)[[0, 1, 0, 1], [0, 1, 2, 2]]
