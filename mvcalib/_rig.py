@@ -924,6 +924,33 @@ def _calibrate_rig(
     )
 
 
+_FISHEYE_START_FRAMES = 20
+
+
+def _fisheye_start(target, pixels, mask, image_size) -> Camera:
+    """Each camera of a fisheye rig from its own frames of a planar target: intrinsics and
+    distortion by `calibrate_planar(lens="fisheye")` of up to `_FISHEYE_START_FRAMES` of them,
+    evenly spread (so that every camera with as many runs the same compiled program; NaN with
+    fewer than 2 frames); the poses are the closed form's business, so these are the
+    identity."""
+    from ._planar import calibrate_planar
+
+    C = pixels.shape[0]
+    K, dist = np.full((C, 3, 3), np.nan), np.full((C, 4), np.nan)
+    for c in range(C):
+        frames = np.flatnonzero(mask[c].sum(-1) >= MIN_PLANE_POINTS)
+        if len(frames) < 2:
+            continue
+        spread = np.linspace(0, len(frames) - 1, min(len(frames), _FISHEYE_START_FRAMES))
+        frames = frames[np.unique(spread.round().astype(int))]
+        px = np.where(mask[c, frames, :, None], pixels[c, frames], np.nan)
+        own = calibrate_planar(target, px, mask[c, frames], lens="fisheye", image_size=image_size)
+        if bool(np.all(np.asarray(own.ok))):
+            K[c], dist[c] = np.asarray(own.K), np.asarray(own.dist)
+    eye, zero = np.broadcast_to(np.eye(3), (C, 3, 3)), np.zeros((C, 3))
+    return Camera.from_matrices(K, eye, zero, dist, lens="fisheye")
+
+
 # ------------------------------------------------------------------------------ public
 def calibrate_rig(
     target: Float[Array, "N 3"],
@@ -941,6 +968,8 @@ def calibrate_rig(
     max_relative_rms: float = _dlt.DEFAULT_MAX_RELATIVE_RMS,
     max_steps: int = 100,
     verbose: bool = False,
+    lens: str | None = None,
+    image_size: tuple[int, int] | None = None,
 ) -> RigCalibration:
     """Calibrate a rig of C cameras from a target moved through its volume over F frames.
 
@@ -980,6 +1009,11 @@ def calibrate_rig(
     - `max_relative_rms`: a camera whose reprojection RMS exceeds this fraction of its pixels'
       spread is `Status.POOR_FIT` and NaN, as in `mvcalib.calibrate` (default 0.05).
     - `verbose`: print the stages and their times to stderr.
+    - `lens`: the cameras' lens, `"pinhole"` (default) or `"fisheye"` (default: `cameras`'s).
+      Without `cameras`, a fisheye rig needs a planar target and `image_size=(width, height)`:
+      each camera's intrinsics and distortion start from `mvcalib.calibrate_planar(...,
+      lens="fisheye")` of its own frames (at least 2), then the rig is solved as from given
+      cameras. A camera with fewer frames is NaN and flagged.
 
     Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
     which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
@@ -1044,7 +1078,19 @@ def calibrate_rig(
             f"no (camera, frame) pair sees {minimum} or more points of the target: nothing to "
             "calibrate from."
         )
-    lens = "pinhole" if cameras is None else cameras.lens
+    if lens is None:
+        lens = "pinhole" if cameras is None else cameras.lens
+    if cameras is not None and cameras.lens != lens:
+        raise ValueError(f"`lens={lens!r}` but the starting `cameras` are {cameras.lens} cameras.")
+    if cameras is None and lens == "fisheye":
+        if not (planar and concrete) or image_size is None:
+            raise ValueError(
+                "a fisheye rig without starting `cameras` starts each camera from its own frames "
+                "of a planar target: give a planar `target`, concrete arrays and "
+                "`image_size=(width, height)`, or fisheye `cameras=`."
+            )
+        say("each fisheye camera's intrinsics from its own frames (calibrate_planar)")
+        cameras = _fisheye_start(target, pixels, mask, image_size)
     names = parameter_names(lens)
     free = _free_parameters(distortion, fix, skew, lens)
     fixed = set(names) - {names[i] for i in free}

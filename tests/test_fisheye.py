@@ -361,7 +361,7 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
     assert bool(out.ok) and out.cameras.lens == "fisheye"
     assert np.all(np.asarray(out.rms_after) < 0.3 * np.sqrt(2) * 1.1)
     assert np.abs(np.asarray(out.cameras.alpha_u - cameras.alpha_u)).max() < 1.0  # px
-    # a board moved through the room; the rig's intrinsics start 1 % off, the poses unknown
+    # a board moved through the room, nothing known but the image size
     F, board = 40, BOARD
     pixels = np.full((6, F, len(board), 2), np.nan)
     for f in range(F):
@@ -375,14 +375,17 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
         seen = (off_axis < 100.0) & facing[:, None]
         p = np.asarray(cameras.project(X)) + 0.3 * rng.standard_normal((6, len(board), 2))
         pixels[:, f] = np.where(seen[..., None], p, np.nan)
-    start = mc.Camera(cameras.alpha_u * 1.01, cameras.alpha_v, cameras.u0, cameras.v0,
-                      cameras.R, cameras.t, dist=cameras.dist * 0.5, lens="fisheye")  # fmt: skip
-    rig = mc.calibrate_rig(board, pixels, cameras=start)
+    # no starting cameras: each one's intrinsics from its own frames, then the rig
+    rig = mc.calibrate_rig(board, pixels, lens="fisheye", image_size=IMAGE)
     assert bool(rig.ok.all()) and rig.parameter_names[-4:] == ("k1", "k2", "k3", "k4")
     centres = np.asarray(cameras[0].to_camera(cameras.center))  # in camera 0's frame
     error = np.linalg.norm(np.asarray(rig.cameras.center) - centres, axis=1)
     print(f"\nboard rig: RMS {float(rig.rms):.4f} px, centres within {error.max() * 1e3:.1f} mm")
     assert float(rig.rms) < 0.3 * np.sqrt(2) * 1.05 and error.max() < 0.01  # m, of 4 m
+    focal = np.asarray(rig.cameras.alpha_u) - np.asarray(cameras.alpha_u)
+    assert np.abs(focal).max() < 1.0  # px
+    with pytest.raises(ValueError, match="image_size"):
+        mc.calibrate_rig(board, pixels, lens="fisheye")
 
 
 # ------------------------------------------------------------------------------ photographs
