@@ -42,7 +42,9 @@ EXAMPLES = {
                                   caliscope's detections with its intrinsics held; the board
                                   in the frame most cameras saw is the world's floor
   mvcalib calibrate-rig observations.csv --huber 2 --plot rig.png --out rig.json
-                                  robust to wrong detections, with a figure of the residuals""",
+                                  robust to wrong detections, with a figure of the residuals
+  mvcalib calibrate-rig observations.csv --fisheye --image-size 1280 960 --out rig.json
+                                  fisheye cameras, nothing known but the photos' size""",
     "detect": """\
   mvcalib detect cam*.png --out dots.csv
                                   the dots of the box-corner target in each photo, labelled
@@ -210,6 +212,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="the distortion coefficients estimated (default k1,k2,p1,p2; of fisheye cameras "
         "from --intrinsics k1,k2,k3,k4; or none)",
     )
+    rig.add_argument(
+        "--fisheye",
+        action="store_true",
+        help="fisheye cameras (cv2.fisheye's model): with no --intrinsics, each camera starts "
+        "from its own frames of a planar target; needs --image-size",
+    )
+    rig.add_argument("--image-size", **size, help="the photos' size (with --fisheye)")
     rig.add_argument(
         "--reference",
         default="0",
@@ -641,6 +650,7 @@ def _calibrate_rig(args) -> int:
         reference=reference,
         loss=None if args.huber is None else Huber(args.huber),
         verbose=not args.quiet,
+        **(dict(lens="fisheye", image_size=args.image_size) if args.fisheye else {}),
     )
     status = np.asarray(result.status)
     ok = status == Status.OK

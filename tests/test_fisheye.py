@@ -12,6 +12,7 @@ import pytest
 from test_grad import check_derivatives
 
 import mvcalib as mc
+from mvcalib import cli
 from mvcalib._refine import _pack, _pixel_jacobian, _unpack
 
 # Real lenses' coefficients are of this order (k1 < 0: the image compressed towards the rim);
@@ -350,7 +351,7 @@ def test_planar_fisheye_calibration_takes_rays_beyond_90_degrees():
 
 
 # ------------------------------------------------------------------------------ rigs
-def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
+def test_refine_rig_and_calibrate_rig_take_fisheye_rigs(tmp_path, monkeypatch):
     cameras, world, mask, angle = fisheye_ring(6, n_points=300, seed=4)
     rng = np.random.default_rng(4)
     pixels = np.asarray(cameras.project(world)) + 0.3 * rng.standard_normal((6, 300, 2))
@@ -386,6 +387,18 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs():
     assert np.abs(focal).max() < 1.0  # px
     with pytest.raises(ValueError, match="image_size"):
         mc.calibrate_rig(board, pixels, lens="fisheye")
+    # the command line: the same rig, written as a fisheye rig
+    monkeypatch.setenv("MVCALIB_COMPILATION_CACHE", "0")  # leave this process's JAX alone
+    names = [f"cam{c}" for c in range(6)]
+    observations = mc.io.Observations(
+        board, pixels, np.isfinite(pixels[..., 0]), names, np.arange(F), np.arange(len(board))
+    )
+    path = mc.io.save_observations(tmp_path / "obs.csv", observations)
+    command = ["calibrate-rig", path, "--fisheye", "--image-size", *IMAGE, "--quiet"]
+    assert cli.main([str(a) for a in [*command, "--out", tmp_path / "rig.json"]]) == 0
+    written, _ = mc.io.load_json(tmp_path / "rig.json")
+    assert written.lens == "fisheye"
+    np.testing.assert_allclose(written.center, rig.cameras.center, atol=1e-6)
 
 
 # ------------------------------------------------------------------------------ photographs
