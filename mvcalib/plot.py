@@ -59,13 +59,17 @@ def _image_sizes(rig: Camera, image_size, pixels=None) -> np.ndarray:
 
 
 def _frustum(camera: Camera, size, depth) -> np.ndarray:
-    """(5, 3) world points: the centre, then the image's four corners at `depth`."""
+    """(5, 3) world points: the centre, then the image's four corners at `depth` (a fisheye's:
+    at that distance along their rays, which may point beside or behind the camera)."""
     w, h = size
     corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
-    K = np.array([[camera.alpha_u, camera.skew, camera.u0], [0, camera.alpha_v, camera.v0],
-                  [0, 0, 1]], dtype=float)  # fmt: skip
-    rays = np.linalg.solve(K, np.c_[corners, np.ones(4)].T).T
-    x_cam = depth * rays / rays[:, 2:]
+    if camera.lens == "fisheye":
+        x_cam = depth * np.asarray(camera.rays(corners), dtype=float)
+    else:
+        K = np.array([[camera.alpha_u, camera.skew, camera.u0], [0, camera.alpha_v, camera.v0],
+                      [0, 0, 1]], dtype=float)  # fmt: skip
+        rays = np.linalg.solve(K, np.c_[corners, np.ones(4)].T).T
+        x_cam = depth * rays / rays[:, 2:]
     R, t = np.asarray(camera.R), np.asarray(camera.t)
     world = (x_cam - t) @ R  # R^T (x - t), row by row
     return np.vstack([-(t @ R)[None], world])

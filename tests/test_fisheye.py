@@ -441,3 +441,18 @@ def test_photographs_of_a_dot_grid_calibrate_a_fisheye():
     assert bool(out.ok.all()) and float(out.rms) < 0.05
     np.testing.assert_allclose(K[[0, 1], [0, 1]], [300.0, 301.0], rtol=1e-3)
     np.testing.assert_allclose(K[:2, 2], [641.3, 478.2], atol=0.3)
+
+
+def test_plotted_frustums_follow_the_lens():
+    """`plot_rig`'s frustum corners are points of the image corners' rays: they project back to
+    the corners, for a fisheye (whose corner rays here lie beyond 90 degrees) as for a pinhole."""
+    from mvcalib.plot import _frustum
+
+    fisheye, *_ = one_camera()
+    pinhole = mc.Camera(800.0, 810.0, 320.0, 240.0, np.eye(3), np.zeros(3))
+    for camera, size in ((fisheye, (1280, 960)), (pinhole, (640, 480))):
+        corners = _frustum(camera, size, depth=2.0)[1:]
+        w, h = size
+        expected = [[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]
+        np.testing.assert_allclose(camera.project(corners), expected, atol=1e-8)
+    assert np.any(np.asarray(fisheye.to_camera(_frustum(fisheye, (1280, 960), 2.0)[1:]))[:, 2] < 0)
