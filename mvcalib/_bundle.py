@@ -21,6 +21,7 @@ from ._camera import Camera, finite_cameras, usable_rig, where_cameras
 from ._refine import (
     _RESULT_MESSAGES,
     PARAMETERS,
+    POSE_INDICES,
     Cauchy,
     Huber,
     LevenbergMarquardt,
@@ -36,10 +37,9 @@ from ._registration import RigidTransform
 from ._report import masked_rms
 from ._rotation import rodrigues
 
-# Indices into the packed parameters (`parameter_names`, either lens): the pose (the rest are the
-# intrinsics with the distortion, shared by `shared_intrinsics`), and the translation's first
-# entry, whose scale (the camera's distance) sets the units of the placement and of the points.
-_POSE = tuple(PARAMETERS.index(n) for n in ("rx", "ry", "rz", "tx", "ty", "tz"))
+# The translation's first entry among the packed parameters, whose scale (the camera's distance)
+# sets the units of the placement and of the points. (`shared_intrinsics` shares every parameter
+# but the pose, `POSE_INDICES`.)
 _DISTANCE = PARAMETERS.index("tx")
 
 
@@ -204,8 +204,8 @@ def refine_rig(
     free = _free_parameters(distortion, fix, skew, cameras.lens)
     cameras = _skew_model(cameras, skew, fix)
     shared = bool(shared_intrinsics)
-    cam_free = tuple(i for i in free if not (shared and i not in _POSE))
-    shared_free = tuple(i for i in free if shared and i not in _POSE)
+    cam_free = tuple(i for i in free if not (shared and i not in POSE_INDICES))
+    shared_free = tuple(i for i in free if shared and i not in POSE_INDICES)
 
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     # A camera without a finite seed (one that `calibrate` could not solve is NaN) takes no

@@ -21,7 +21,7 @@ from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
 from ._refine import (
     _RESULT_MESSAGES,
-    DISTORTION,
+    GROUPS,
     Cauchy,
     Huber,
     _free_parameters,
@@ -31,15 +31,14 @@ from ._refine import (
 )
 from ._registration import RigidTransform
 from ._report import ReprojectionReport, compute_report, format_table
-from ._rotation import nearest_rotation, rodrigues
+from ._rotation import hat, nearest_rotation, rodrigues
 from ._status import Status
 
 MIN_PLANE_POINTS = 4  # a homography has 8 degrees of freedom; each point gives 2 equations
-SHARED = ("alpha_u", "alpha_v", "u0", "v0", "skew", *DISTORTION)  # one value for every view
 # What the refinement estimates of each lens's distortion by default: Zhang's radial model; all
 # of cv2.fisheye's four.
 DEFAULT_DISTORTION = {"pinhole": ("k1", "k2"), "fisheye": LENSES["fisheye"]}
-POSE = ("rx", "ry", "rz", "tx", "ty", "tz")  # one per view
+POSE = GROUPS["pose"]  # one per view; the other parameters have one value for every view
 
 _MESSAGES = {
     Status.OK: "calibrated",
@@ -279,7 +278,7 @@ def _ray_homographies(a, d, seen):
     n = len(a)
     ah = np.concatenate([a, np.ones((n, 1))], 1)
     kron = np.einsum("ij,nk->nijk", np.eye(3), ah).reshape(n, 3, 9)  # H ah = kron @ vec(H)
-    rows = (_cross_matrices(d) @ kron) * seen[..., None, None]  # (V, N, 3, 9)
+    rows = (hat(d, xp=np) @ kron) * seen[..., None, None]  # (V, N, 3, 9)
     flat = rows.reshape(len(rows), -1, 9)
     normal = flat.transpose(0, 2, 1) @ flat
     H = np.linalg.eigh(normal)[1][..., 0].reshape(-1, 3, 3)
@@ -287,15 +286,6 @@ def _ray_homographies(a, d, seen):
     fitted /= np.linalg.norm(fitted, axis=-1, keepdims=True)
     sine = np.linalg.norm(np.cross(d, fitted), axis=-1) * seen
     return H, rows, sine
-
-
-def _cross_matrices(d):
-    """`[d]_x (..., 3, 3)` of vectors `d (..., 3)`."""
-    zero = np.zeros(d.shape[:-1])
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    return np.stack([np.stack([zero, -z, y], -1),
-                     np.stack([z, zero, -x], -1),
-                     np.stack([-y, x, zero], -1)], -2)  # fmt: skip
 
 
 def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
@@ -418,7 +408,7 @@ def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
     names = parameter_names(lens)
     free = {names[i] for i in _free_parameters(distortion, fix, skew, lens)}
     mask = lambda names: jnp.asarray([n in free for n in names], dtype)  # noqa: E731
-    return mask((*SHARED[:5], *LENSES[lens])), mask(POSE)
+    return mask(tuple(n for n in names if n not in POSE)), mask(POSE)
 
 
 @_buckets.jit

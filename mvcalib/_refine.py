@@ -44,6 +44,9 @@ GROUPS = {
     "distortion": LENSES["pinhole"],  # (a fisheye's: its own, `_free_parameters`)
 }
 DISTORTION = LENSES["pinhole"]
+# Where the pose sits in the packed parameters (the same for either lens; the rest are the
+# intrinsics with the distortion).
+POSE_INDICES = tuple(PARAMETERS.index(n) for n in GROUPS["pose"])
 
 
 # ------------------------------------------------------------------------------ robust losses

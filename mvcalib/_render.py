@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._camera import Camera
+from ._camera import Camera, _fisheye_polynomial
 from .targets import Target
 
 __all__ = ["render", "true_centres", "ellipse_centres", "visible_dots", "dot_normals"]
@@ -260,14 +260,12 @@ def _undistort(xd: np.ndarray, dist: np.ndarray, iterations: int = 20) -> np.nda
 
 def _fisheye_rays(xd: np.ndarray, dist: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Unit rays `(..., 3)` of a fisheye's distorted normalised coordinates `(..., 2)`: the angle
-    `theta` from `theta_d` by Newton's method (as `Camera.rays`)."""
-    k1, k2, k3, k4 = dist
+    `theta` from `theta_d` by Newton's method (as `Camera.rays`, here in NumPy: rendering runs
+    on the host, block by block)."""
     theta_d = np.linalg.norm(xd, axis=-1)
     theta = theta_d.copy()
     for _ in range(iterations):
-        t2 = theta * theta
-        value = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-        slope = 1.0 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        value, slope = _fisheye_polynomial(theta, dist)
         theta = np.clip(theta - (value - theta_d) / slope, 0.0, np.pi)
     scale = np.where(theta_d > 0, np.sin(theta) / np.where(theta_d > 0, theta_d, 1.0), 1.0)
     return np.concatenate([xd * scale[..., None], np.cos(theta)[..., None]], -1)

@@ -42,7 +42,7 @@ from ._planar import MIN_PLANE_POINTS, _homography_kernel, _plane_frame, _pose
 from ._refine import (
     _MIN_DAMPING,
     _RESULT_MESSAGES,
-    PARAMETERS,
+    POSE_INDICES,
     Cauchy,
     Huber,
     _definite_solve,
@@ -61,8 +61,7 @@ from ._rotation import exp_and_left_jacobian, nearest_rotation, rodrigues
 from ._status import Status
 
 MIN_OBJECT_POINTS = _validate.MIN_POINTS  # the DLT of one (camera, frame) pair of a 3-D target
-_POSE = tuple(PARAMETERS.index(n) for n in ("rx", "ry", "rz", "tx", "ty", "tz"))
-_ROTATION = _POSE[:3]
+_ROTATION = POSE_INDICES[:3]
 # Rigs of at most this many camera-frame-points are compiled quickly (`_buckets.jit`): the program
 # holds two Levenberg–Marquardt solves, and its first call is mostly compiling. 4 cameras x 48
 # frames x 48 points: first call 7.8 against 24.2 s, warm 1.0 against 0.3 s; 8 x 100 x 108: 12.0
@@ -379,7 +378,7 @@ def _initialise(
         )
     Rrel, trel, shared = _relative_poses(Rp, tp, ok)
     linked, R, t = _chain(Rrel, trel, shared, reference)
-    if given and not any(i in _POSE for i in free):  # the poses held: the given ones
+    if given and not any(i in POSE_INDICES for i in free):  # the poses held: the given ones
         linked, R, t = jnp.ones_like(linked), cameras.R, cameras.t
     usable = linked & jnp.any(ok, 1)
     status = jnp.select(
@@ -410,7 +409,7 @@ def _refine_own(cams, Rp, tp, ok, distance, target, pixels, mask, free, loss, ma
     from its own frames alone: the rig's problem with one camera at the origin, for every camera
     at once (vmapped)."""
     eye = jnp.eye(3, dtype=Rp.dtype)
-    pose = jnp.asarray([i in _POSE for i in free], bool)
+    pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
     move = (~pose).astype(Rp.dtype)[None]
 
     def one(cam, Rp, tp, ok, pixels, mask):
@@ -841,7 +840,7 @@ def _calibrate_rig(
     loss,
     max_steps,
 ):
-    pose = jnp.asarray([i in _POSE for i in free], bool)
+    pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
     initial, frames, pair, frame_ok, status, distance = jax.lax.stop_gradient(
         _initialise(
             target,

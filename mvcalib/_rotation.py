@@ -6,14 +6,15 @@ import jax
 import jax.numpy as jnp
 
 
-def hat(w):
-    """The skew-symmetric matrix `[w]x` with `hat(w) @ v == cross(w, v)`."""
-    z = jnp.zeros_like(w[..., 0])
-    return jnp.stack(
+def hat(w, xp=jnp):
+    """The skew-symmetric matrix `[w]x` with `hat(w) @ v == cross(w, v)`; `xp=np` for NumPy
+    arrays on the host."""
+    z = xp.zeros_like(w[..., 0])
+    return xp.stack(
         [
-            jnp.stack([z, -w[..., 2], w[..., 1]], -1),
-            jnp.stack([w[..., 2], z, -w[..., 0]], -1),
-            jnp.stack([-w[..., 1], w[..., 0], z], -1),
+            xp.stack([z, -w[..., 2], w[..., 1]], -1),
+            xp.stack([w[..., 2], z, -w[..., 0]], -1),
+            xp.stack([-w[..., 1], w[..., 0], z], -1),
         ],
         -2,
     )

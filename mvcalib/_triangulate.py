@@ -58,11 +58,14 @@ def _normal_coefficients(P):
     point through memory.
     """
     P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]  # (C, 4)
+    squares = (_sym(P1, P1) + _sym(P2, P2)) / 2
+    return jnp.stack([_sym(P3, P3) / 2, -_sym(P3, P1), -_sym(P3, P2), squares])
 
-    def sym(a, b):  # the entries of a b^T + b a^T, (10, C), as one product with a constant
-        return jnp.asarray(_SYM, a.dtype) @ (a[:, :, None] * b[:, None, :]).reshape(-1, 16).T
 
-    return jnp.stack([sym(P3, P3) / 2, -sym(P3, P1), -sym(P3, P2), (sym(P1, P1) + sym(P2, P2)) / 2])
+def _sym(a, b):
+    """The distinct entries of `a b^T + b a^T`, `(10, C)`, for rows `a, b (C, 4)`: one product
+    with a constant."""
+    return jnp.asarray(_SYM, a.dtype) @ (a[:, :, None] * b[:, None, :]).reshape(-1, 16).T
 
 
 def _ray_coefficients(P):
@@ -72,12 +75,8 @@ def _ray_coefficients(P):
     (`d x P X`) stay of full rank where the pinhole's two, `x P3 - P1` and `y P3 - P2` with
     `(x, y) = (dx, dy) / dz`, lose one at 90 degrees."""
     P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]
-
-    def sym(a, b):
-        return jnp.asarray(_SYM, a.dtype) @ (a[:, :, None] * b[:, None, :]).reshape(-1, 16).T
-
-    squares = [sym(a, a) / 2 for a in (P1, P2, P3)]
-    cross = [-sym(P1, P2), -sym(P1, P3), -sym(P2, P3)]
+    squares = [_sym(a, a) / 2 for a in (P1, P2, P3)]
+    cross = [-_sym(P1, P2), -_sym(P1, P3), -_sym(P2, P3)]
     return jnp.stack([sum(squares)] + [-q for q in squares] + cross)
 
 
