@@ -602,6 +602,7 @@ def _calibrate_rig(args) -> int:
     import numpy as np
 
     from . import io
+    from ._camera import LENSES
     from ._refine import GROUPS, Huber
     from ._rig import calibrate_rig
     from ._status import Status
@@ -664,7 +665,7 @@ def _calibrate_rig(args) -> int:
         "observations": str(args.observations),
         "intrinsics": None if args.intrinsics is None else str(args.intrinsics),
         "fix": list(args.fix),
-        "distortion": [n for n in result.parameter_names if n[0] in "kp"],
+        "distortion": [n for n in result.parameter_names if n in LENSES[result.cameras.lens]],
         "reference": reference,
         "loss": None if args.huber is None else {"huber": args.huber},
         "rms": number(result.rms),
