@@ -712,14 +712,14 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int,
     return tuple(i for i, name in enumerate(names) if name not in fixed)
 
 
-def _skew_model(cameras: Camera, skew: bool, fix) -> Camera:
+def _skew_model(cameras: Camera, skew: bool, fix, xp=jnp) -> Camera:
     """The seed of a zero-skew model (`skew=False`, the default: OpenCV's model) has zero skew:
     a seed with another value (the DLT's, noisy) has it set to zero, not held, unless `fix` names
     `"skew"` (then the seed's value is held). With `skew=True` it is estimated from the seed's."""
     held = "skew" in ((fix,) if isinstance(fix, str) else tuple(fix))
     if skew or held:
         return cameras
-    return eqx.tree_at(lambda c: c.skew, cameras, jnp.zeros_like(cameras.skew))
+    return eqx.tree_at(lambda c: c.skew, cameras, xp.zeros_like(cameras.skew))
 
 
 def default_solver(dtype) -> optx.AbstractLeastSquaresSolver:
@@ -800,9 +800,13 @@ def refine(
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`): padded
     # cameras have NaN seeds, which end at once, padded points are hidden.
     bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)
-    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
+    # (checked in NumPy when padded, or when they are NumPy arrays already: compiling nothing)
+    host = bucketed or all(isinstance(x, np.ndarray) for x in (world, pixels, mask))
+    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if host else jnp)
     free = _free_parameters(distortion, fix, skew, cameras.lens)
-    cameras = _skew_model(cameras, skew, fix)
+    cameras = _skew_model(
+        cameras, skew, fix, xp=np if bucketed or isinstance(cameras.skew, np.ndarray) else jnp
+    )
     if _validate.is_concrete(mask) and not cameras.batch_shape:
         n_min = int(np.sum(np.asarray(mask)))
         if 2 * n_min <= len(free):
