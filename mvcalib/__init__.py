@@ -40,6 +40,7 @@ _EXPORTS = {
     "_report": ("ReprojectionReport", "reprojection_report"),
     "_rig": ("RigCalibration", "calibrate_rig"),
     "_rotation": ("nearest_rotation", "rodrigues"),
+    "_second_look": ("second_look",),
     "_sharding": ("shard",),
     "_status": ("Status",),
     "_triangulate": ("Triangulation", "reproject", "triangulate"),
@@ -111,6 +112,7 @@ if typing.TYPE_CHECKING:
     from ._rig import calibrate_rig as calibrate_rig
     from ._rotation import nearest_rotation as nearest_rotation
     from ._rotation import rodrigues as rodrigues
+    from ._second_look import second_look as second_look
     from ._sharding import shard as shard
     from ._status import Status as Status
     from ._triangulate import Triangulation as Triangulation

@@ -18,6 +18,7 @@ from ._match import match_dots
 from ._pipeline import Calibration, CalibrationError, calibrate
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
+from ._second_look import second_look as _second_look
 from ._status import Status
 from .targets import Target, box_corner
 
@@ -158,6 +159,7 @@ def calibrate_images(
     strict: bool = False,
     progress: bool | None = None,
     bias_iterations: int = 2,
+    second_look: bool | dict = True,
 ) -> ImageCalibration:
     """Calibrate one camera per photograph of `target`: the paper's whole pipeline from images.
 
@@ -182,6 +184,10 @@ def calibrate_images(
       dot_ids (k,))`, or None for that image (then `label_dots`); `focal`: the focal-length
       guess in pixels that four or five (or coplanar) clicks need, one for all images or one
       per image.
+    - `second_look`: for images labelled from `seeds`: look again, with each calibrated camera,
+      where it predicts the dots that were not matched, and add those that a template of their
+      matched neighbours fits well (`mvcalib.second_look`: dots lost to an attached speck, glare,
+      a stripe or uneven light), then calibrate again; twice. A dict passes its options.
     - `strict`: raise `CalibrationError` if any image gives no camera.
     - `progress`: print one line per image to stderr; default: when there are more than 4.
     - `bias_iterations`: rounds of perspective-bias correction: a dot's image is an ellipse
@@ -215,13 +221,17 @@ def calibrate_images(
         raise ValueError(f"{len(focals)} focal lengths for {len(images)} images.")
     progress = len(images) > 4 if progress is None else progress
     detect, label = dict(detect or {}), dict(label or {})
-    names, detections, labels = [], [], []
+    look = {} if second_look is True else (dict(second_look) if second_look else None)
+    names, detections, labels, pictures = [], [], [], {}
     for i, image in enumerate(images):
         is_path = isinstance(image, (str, os.PathLike))
         names.append(str(image) if is_path else f"image {i}")
         detection = None
         try:
-            detection = detect_dots(read_image(image) if is_path else image, **detect)
+            picture = read_image(image) if is_path else image
+            detection = detect_dots(picture, **detect)
+            if seeds[i] is not None and look is not None:
+                pictures[i] = picture  # (for the second look)
             if seeds[i] is None:
                 labels.append(label_dots(detection, target, **label))
             else:
@@ -238,6 +248,25 @@ def calibrate_images(
     dtype = jnp.result_type(float)
     world = jnp.asarray(target.points, dtype)
     calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
+    if pictures:  # the seeded images: look again where the cameras predict the missing dots
+        first = list(labels)
+        options = dict(dark_dots=detect.get("dark_dots", True), **look)
+        for _ in range(2):
+            ok = np.asarray(calibration.ok)
+            for i, picture in pictures.items():
+                if ok[i] and first[i].ok:
+                    camera = jax.tree_util.tree_map(lambda a, i=i: a[i], calibration.cameras)
+                    try:
+                        labels[i] = _second_look(
+                            picture, first[i], target, camera, detection=detections[i], **options
+                        )
+                    except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
+                        labels[i] = first[i]
+            mask = np.stack([lab.mask for lab in labels])
+            pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))
+            calibration = calibrate(
+                world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine
+            )
     # (the bias is predicted from the dots' radii: a target without them keeps the centroids)
     known_radii = bool(np.all(np.isfinite(target.radii)))
     for _ in range(int(bias_iterations) if known_radii else 0):
