@@ -45,7 +45,8 @@ class Labels:
 
     - `pixels`: `(M, 2)` the centroid of each target dot's blob, `(x, y)`; NaN where missing.
     - `mask`: `(M,)` bool, the dots found (the visibility mask for `mvcalib.calibrate`).
-    - `index`: `(M,)` int, the detection each dot was matched to, -1 where missing.
+    - `index`: `(M,)` int, the detection each dot was matched to, -1 where missing (or found
+      by `mvcalib.second_look`, which measures the image, not a blob).
     - `spurious`: indices of the detections that are no dot of the target (clutter).
     - `ok`: whether the labelling is trustworthy; when False, `mask` is all False.
     - `rms`: RMS distance in pixels between the labelled blobs and the dots projected by the DLT
