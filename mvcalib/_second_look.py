@@ -273,7 +273,6 @@ def second_look(
     refit: bool = False,
     saturation: float = 1.0,
     centre_by: str | None = None,
-    _log: dict | None = None,
 ) -> Labels:
     """Find the dots `labels` lacks where `camera` predicts them, by fitting a template of their
     matched neighbours to the image (see the module notes for the method).
@@ -401,8 +400,6 @@ def second_look(
             continue
         fit = look(k, at)
         why = verdict(fit)
-        if _log is not None:
-            _log[int(k)] = (why, fit)
         if mask[k]:  # refit: a matched dot keeps its centroid where the fit is not good
             if fit is not None and fit["misfit"] <= max_misfit and fit["shift"] <= gate:
                 centres[k] = fit["centre"]
