@@ -309,6 +309,12 @@ def build_parser() -> argparse.ArgumentParser:
     images.add_argument(
         "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
     )
+    images.add_argument(
+        "--no-second-look",
+        action="store_true",
+        help="with --clicks: keep the dots matched to detected blobs only, without looking again "
+        "where the calibrated camera predicts the missed ones (mvcalib.second_look)",
+    )
 
     demo = command(
         "demo",
@@ -951,6 +957,7 @@ def _calibrate_images(args) -> int:
         seeds=seeds,
         focal=args.focal,
         progress=not args.quiet,
+        second_look=not args.no_second_look,
     )
     print(result)
     io.save_json(

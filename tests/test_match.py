@@ -1,6 +1,8 @@
 """Seeded labelling (`mc.match_dots`): synthetic photographs with known cameras, wrong seeds,
 bad input, and OpenPTV's real cavity photographs seeded by its own clicked points."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -194,6 +196,8 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     assert "4 of 4 cameras calibrated" in out.stdout
     cameras, names = mc.io.load_json(tmp_path / "r.json")
     assert cameras.batch_shape == (4,) and np.all(np.isfinite(np.asarray(cameras.alpha_u)))
+    messages = json.loads((tmp_path / "r.json").read_text())["meta"]["messages"]
+    assert all("second look:" in m for m in messages), messages  # dots found again in each
     # an unknown dot id in the clicks: exit 1, one line naming the row
     bad = cavity_clicks(root, tmp_path / "bad.csv", ["cam1.tif,999,10,10"])
     out = run_cli(
@@ -206,10 +210,12 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     broken.write_bytes(b"II*\x00 not a tiff")
     out = run_cli(
         "calibrate-images", images[0], broken, *images[2:], *common, "--clicks", clicks,
-        "--out", tmp_path / "c.json",
+        "--out", tmp_path / "c.json", "--no-second-look",
     )  # fmt: skip
     assert out.returncode == 1 and "3 of 4 cameras calibrated" in out.stdout, out.stdout
     assert "cam2.tif: cannot be read as an image" in out.stderr, out.stderr
+    messages = json.loads((tmp_path / "c.json").read_text())["meta"]["messages"]
+    assert not any("second look" in m for m in messages), messages
 
 
 # ------------------------------------------------------------------------ printed dot grids
