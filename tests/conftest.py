@@ -1,3 +1,4 @@
+import functools
 import os
 import pathlib
 import subprocess
@@ -133,6 +134,36 @@ def data_dir(name: str) -> pathlib.Path:
     if not path.is_dir():
         pytest.skip(f"real data set {name!r} not found under MVCALIB_DATA={DATA}")
     return path
+
+
+# OpenPTV's cavity photographs: the focal guess its clicks need, principal distance 70 mm over
+# 12 um pixels (ptv.par, cam*.ori).
+CAVITY_FOCAL = 70.0 / 0.012
+
+
+@functools.cache
+def cavity(**detect):
+    """OpenPTV's cavity: `(target, ids, clicks, views)` with, per camera, `(image, detection,
+    labels)`: the photo's dots (`detect_dots` with `detect`'s options) matched from OpenPTV's own
+    clicked points (`man_ori`). Skips without the data, or without `imagecodecs` for its TIFFs."""
+    import mvcalib as mc
+
+    skimage_io = pytest.importorskip("skimage.io")
+    root = data_dir("openptv_cavity")
+    target = mc.targets.from_file(root / "cal" / "target_on_a_side.txt")
+    ids, clicks = mc.io.load_openptv_clicks(
+        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
+    )
+    views = []
+    for c in range(4):
+        try:
+            image = skimage_io.imread(root / "cal" / f"cam{c + 1}.tif")
+        except ValueError as error:  # LZW-compressed TIFF without imagecodecs
+            pytest.skip(f"cannot read cam{c + 1}.tif: {error}")
+        detection = mc.detect_dots(image, dark_dots=False, **detect)
+        labels = mc.match_dots(detection, target, (clicks[c], ids[c]), focal=CAVITY_FOCAL)
+        views.append((image, detection, labels))
+    return target, ids, clicks, views
 
 
 def central_difference_check(f, x, *, eps=1e-6, rtol=1e-5, atol=1e-8, seed=0):

@@ -6,7 +6,7 @@ import json
 import jax
 import numpy as np
 import pytest
-from conftest import data_dir
+from conftest import cavity, data_dir
 
 import mvcalib as mc
 
@@ -128,20 +128,8 @@ MATCHED = {(): (36, 40, 69, 66), (("max_ellipse_error", (2.0, 1.0)),): (42, 41, 
 
 @pytest.mark.parametrize("options", list(MATCHED), ids=["defaults", "relaxed"])
 def test_openptv_cavity_from_its_own_clicks(options):
-    skimage_io = pytest.importorskip("skimage.io")
-    root = data_dir("openptv_cavity")
-    target = mc.targets.from_file(root / "cal" / "target_on_a_side.txt")
-    ids, clicks = mc.io.load_openptv_clicks(
-        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
-    )
-    focal = 70.0 / 0.012  # principal distance 70 mm over 12 um pixels (ptv.par, cam*.ori)
-    for camera in range(4):
-        try:
-            image = skimage_io.imread(root / "cal" / f"cam{camera + 1}.tif")
-        except ValueError as error:  # LZW-compressed TIFF without imagecodecs
-            pytest.skip(f"cannot read cam{camera + 1}.tif: {error}")
-        detection = mc.detect_dots(image, dark_dots=False, **dict(options))
-        labels = mc.match_dots(detection, target, (clicks[camera], ids[camera]), focal=focal)
+    target, _, _, views = cavity(**dict(options))
+    for camera, (_, _, labels) in enumerate(views):
         assert labels.ok, labels.message
         n = int(labels.mask.sum())
         dlt = mc.calibrate(target.points, labels.pixels, labels.mask)

@@ -10,7 +10,7 @@ import optv.imgcoord
 import optv.parameters
 import optv.transforms
 import pytest
-from conftest import data_dir
+from conftest import cavity, data_dir
 
 import mvcalib as mc
 
@@ -188,24 +188,20 @@ def test_openptv_calibration_of_the_cavity_next_to_mvcalibs():
     0.7-1.1 px) with a physical model of the wall. There is no per-dot ground truth: this
     compares fits, not accuracy.
     """
-    skimage_io = pytest.importorskip("skimage.io")
     root = data_dir("openptv_cavity")
-    target = mc.targets.from_file(root / "cal" / "target_on_a_side.txt")
+    target, _, _, views = cavity()
     world = np.asarray(target.points)
-    ids, clicks = mc.io.load_openptv_clicks(
-        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
-    )
     control = optv.parameters.ControlParams(4)
     control.read_control_par(str(root / "parameters" / "ptv.par"))
-    cavity = control.get_multimedia_params()
-    assert (cavity.get_n1(), cavity.get_n2()[0], cavity.get_n3(), cavity.get_d()[0]) == (
+    medium = control.get_multimedia_params()
+    assert (medium.get_n1(), medium.get_n2()[0], medium.get_n3(), medium.get_d()[0]) == (
         1.0,
         1.33,
         1.46,
         6.0,
     )
     media = {
-        "OpenPTV": cavity,
+        "OpenPTV": medium,
         "swapped": optv.parameters.MultimediaParams(n1=1.0, n2=[1.46], n3=1.33, d=[6.0]),
         "pinhole": optv.parameters.MultimediaParams(**AIR),
     }
@@ -215,13 +211,7 @@ def test_openptv_calibration_of_the_cavity_next_to_mvcalibs():
         return float(np.sqrt(np.mean(np.sum(error**2, -1))))
 
     rows = {}
-    for c in range(4):
-        try:
-            image = skimage_io.imread(root / "cal" / f"cam{c + 1}.tif")
-        except ValueError as error:  # LZW-compressed TIFF without imagecodecs
-            pytest.skip(f"cannot read cam{c + 1}.tif: {error}")
-        detection = mc.detect_dots(image, dark_dots=False)
-        labels = mc.match_dots(detection, target, (clicks[c], ids[c]), focal=70.0 / 0.012)
+    for c, (_, _, labels) in enumerate(views):
         assert labels.ok, labels.message
         calibration = optv_calibration(
             root / "cal" / f"cam{c + 1}.tif.ori", root / "cal" / f"cam{c + 1}.tif.addpar"

@@ -4,8 +4,7 @@ camera predicts them, hidden dots left out; OpenPTV's cavity photographs."""
 import equinox as eqx
 import jax
 import numpy as np
-import pytest
-from conftest import data_dir
+from conftest import cavity
 
 import mvcalib as mc
 from mvcalib._render import ellipse_centres
@@ -132,20 +131,9 @@ FOUND = (41, 43, 71, 70)
 
 
 def test_second_look_on_the_cavity_photographs():
-    skimage_io = pytest.importorskip("skimage.io")
-    root = data_dir("openptv_cavity")
-    target = mc.targets.from_file(root / "cal" / "target_on_a_side.txt")
-    ids, clicks = mc.io.load_openptv_clicks(
-        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
-    )
+    target, _, _, views = cavity()
     hidden = np.isin(np.asarray(target.points)[:, 1], (-25.0, -15.0))  # cam1, cam2: a block
-    for c in range(4):
-        try:
-            image = skimage_io.imread(root / "cal" / f"cam{c + 1}.tif")
-        except ValueError as error:  # LZW-compressed TIFF without imagecodecs
-            pytest.skip(f"cannot read cam{c + 1}.tif: {error}")
-        detection = mc.detect_dots(image, dark_dots=False)
-        labels = mc.match_dots(detection, target, (clicks[c], ids[c]), focal=70.0 / 0.012)
+    for c, (image, detection, labels) in enumerate(views):
         before = mc.calibrate(target.points, labels.pixels, labels.mask, refine=True)
         found = mc.second_look(
             image, labels, target, before.cameras, detection=detection, dark_dots=False
