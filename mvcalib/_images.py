@@ -187,7 +187,9 @@ def calibrate_images(
     - `second_look`: for images labelled from `seeds`: look again, with each calibrated camera,
       where it predicts the dots that were not matched, and add those that a template of their
       matched neighbours fits well (`mvcalib.second_look`: dots lost to an attached speck, glare,
-      a stripe or uneven light), then calibrate again; twice. A dict passes its options.
+      a stripe or uneven light), and re-centre the matched dots by that template where
+      cross-validation says its centres predict the dots better; then calibrate again; twice.
+      A dict passes its options.
     - `strict`: raise `CalibrationError` if any image gives no camera.
     - `progress`: print one line per image to stderr; default: when there are more than 4.
     - `bias_iterations`: rounds of perspective-bias correction: a dot's image is an ellipse
