@@ -349,6 +349,17 @@ def second_look(
 
     ```
     """
+    if len(labels.mask) != len(target.points):
+        raise ValueError(
+            f"`labels` are of {len(labels.mask)} dots and `target` has {len(target.points)}: "
+            "give the target the labels were made for."
+        )
+    if not isinstance(camera, Camera) or camera.batch_shape:
+        if isinstance(camera, Camera):
+            got = f"cameras of shape {camera.batch_shape}"
+        else:
+            got = f"a {type(camera).__name__}"
+        raise ValueError(f"`camera` must be one mvcalib.Camera (this view's); got {got}.")
     if not labels.ok:
         return labels
     centre_by = ("centroid" if dark_dots else "template") if centre_by is None else centre_by
@@ -361,6 +372,14 @@ def second_look(
     pixels = np.asarray(labels.pixels, np.float64).copy()
     world = np.asarray(target.points, np.float64)
     matched = np.flatnonzero(mask)
+    height, width = grey.shape
+    outside = (pixels[matched] < 0).any(1) | (pixels[matched] >= (width, height)).any(1)
+    if outside.any():
+        raise ValueError(
+            f"{int(outside.sum())} of the labelled dots lie outside the {width} x {height} image "
+            f"(e.g. id {int(np.asarray(target.ids)[matched[outside][0]])}): is this the image "
+            "the labels come from?"
+        )
     neighbours = int(neighbours)
     if len(matched) < max(neighbours, 1) + 1:
         return labels
@@ -426,7 +445,6 @@ def second_look(
         raise ValueError(f"`refit` is True, False or 'auto'; got {refit!r}.")
     if refit == "auto" and centre_by == "centroid":
         refit = False  # (the cleaned centroid of a clean dot is its centroid again)
-    height, width = grey.shape
     found, centres = [], {}
     for k in np.flatnonzero(~mask) if refit is False else np.arange(len(world)):
         at = pixels[k] if mask[k] else predicted[k]

@@ -125,6 +125,20 @@ def test_refit_moves_matched_dots_only_when_asked_or_cross_validated():
         mc.second_look(image, labels, GRID, camera, refit="yes")
 
 
+def test_bad_input_raises_with_the_reason():
+    camera, image, _, _, _ = corrupted_view()
+    labels = mc.match_dots(mc.detect_dots(image), GRID, camera)
+    with pytest.raises(ValueError, match="labels` are of 108 dots and `target` has 19"):
+        mc.second_look(image, labels, mc.targets.box_corner(), camera)
+    rig = jax.tree_util.tree_map(lambda x: np.stack([x, x]), camera)
+    with pytest.raises(ValueError, match=r"one mvcalib.Camera .*cameras of shape \(2,\)"):
+        mc.second_look(image, labels, GRID, rig)
+    with pytest.raises(ValueError, match="outside the 200 x 100 image"):
+        mc.second_look(image[:100, :200], labels, GRID, camera)
+    with pytest.raises(ValueError, match="centre_by"):
+        mc.second_look(image, labels, GRID, camera, centre_by="middle")
+
+
 def test_calibrate_images_looks_again_in_seeded_images():
     """A box corner's photo with specks on four dots' outlines, two dots hidden: the seeded
     calibration takes the dots the second look finds, never a hidden one."""
