@@ -245,30 +245,33 @@ def calibrate_images(
         if progress:
             print(f"[{i + 1}/{len(images)}] {names[-1]}: {labels[-1].message}", file=sys.stderr)
 
-    mask = np.stack([lab.mask for lab in labels])
-    pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))  # hidden: no influence
     dtype = jnp.result_type(float)
     world = jnp.asarray(target.points, dtype)
-    calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
+
+    def calibrated(labels):
+        """The labels' pixels and mask, and every view calibrated from them."""
+        mask = np.stack([lab.mask for lab in labels])
+        pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))  # hidden: no influence
+        calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
+        return pixels, mask, calibration
+
+    pixels, mask, calibration = calibrated(labels)
     if pictures:  # the seeded images: look again where the cameras predict the missing dots
         first = list(labels)
         options = dict(dark_dots=detect.get("dark_dots", True), **look)
         for _ in range(2):
+            cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
             ok = np.asarray(calibration.ok)
             for i, picture in pictures.items():
                 if ok[i] and first[i].ok:
-                    camera = jax.tree_util.tree_map(lambda a, i=i: a[i], calibration.cameras)
                     try:
                         labels[i] = _second_look(
-                            picture, first[i], target, camera, detection=detections[i], **options
-                        )
+                            picture, first[i], target, cameras[i], detection=detections[i],
+                            **options,
+                        )  # fmt: skip
                     except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
                         labels[i] = first[i]
-            mask = np.stack([lab.mask for lab in labels])
-            pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))
-            calibration = calibrate(
-                world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine
-            )
+            pixels, mask, calibration = calibrated(labels)
     # (the bias is predicted from the dots' radii: a target without them keeps the centroids)
     known_radii = bool(np.all(np.isfinite(target.radii)))
     for _ in range(int(bias_iterations) if known_radii else 0):
@@ -276,10 +279,9 @@ def calibrate_images(
         # (perspective: the nearer half looks larger). Predict that offset per dot from the
         # current camera, remove it from the measured centroids, and calibrate again.
         bias = np.zeros_like(pixels)
-        ok = np.asarray(calibration.ok)
-        for i in np.flatnonzero(ok):
-            camera = jax.tree_util.tree_map(lambda a, i=i: np.asarray(a[i]), calibration.cameras)
-            bias[i] = ellipse_centres(camera, target) - true_centres(camera, target)
+        cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
+        for i in np.flatnonzero(np.asarray(calibration.ok)):
+            bias[i] = ellipse_centres(cameras[i], target) - true_centres(cameras[i], target)
         corrected = jnp.asarray(np.where(mask[..., None], pixels - bias, 0.0), dtype)
         calibration = calibrate(world, corrected, jnp.asarray(mask), refine=refine)
     unlabelled = jnp.asarray([not lab.ok for lab in labels])

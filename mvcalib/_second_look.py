@@ -461,14 +461,11 @@ def second_look(
     refitted = [k for k in centres if mask[k]]
     message, held_out = labels.message, ""
     if refit == "auto" and refitted:
-        kept = pixels.copy()
+        fitted = pixels.copy()
         for k, centre in centres.items():
-            kept[k] = centre
-        for k in refitted:
-            kept[k] = pixels[k]
-        fitted = kept.copy()
-        for k in refitted:
-            fitted[k] = centres[k]
+            fitted[k] = centre
+        kept = fitted.copy()  # (the dots found, with the matched dots' centroids)
+        kept[refitted] = pixels[refitted]
         every = mask.copy()
         every[found] = True
         before, after = _held_out_rms(world, (kept, fitted), every)

@@ -143,9 +143,9 @@ CAVITY_FOCAL = 70.0 / 0.012
 
 @functools.cache
 def cavity(**detect):
-    """OpenPTV's cavity: `(target, ids, clicks, views)` with, per camera, `(image, detection,
-    labels)`: the photo's dots (`detect_dots` with `detect`'s options) matched from OpenPTV's own
-    clicked points (`man_ori`). Skips without the data, or without `imagecodecs` for its TIFFs."""
+    """OpenPTV's cavity: `(target, views)` with, per camera, `(image, detection, labels)`: the
+    photo's dots (`detect_dots` with `detect`'s options) matched from OpenPTV's own clicked
+    points (`man_ori`). Skips without the data, or without `imagecodecs` for its TIFFs."""
     import mvcalib as mc
 
     skimage_io = pytest.importorskip("skimage.io")
@@ -163,7 +163,7 @@ def cavity(**detect):
         detection = mc.detect_dots(image, dark_dots=False, **detect)
         labels = mc.match_dots(detection, target, (clicks[c], ids[c]), focal=CAVITY_FOCAL)
         views.append((image, detection, labels))
-    return target, ids, clicks, views
+    return target, views
 
 
 def central_difference_check(f, x, *, eps=1e-6, rtol=1e-5, atol=1e-8, seed=0):

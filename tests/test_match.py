@@ -128,7 +128,7 @@ MATCHED = {(): (36, 40, 69, 66), (("max_ellipse_error", (2.0, 1.0)),): (42, 41, 
 
 @pytest.mark.parametrize("options", list(MATCHED), ids=["defaults", "relaxed"])
 def test_openptv_cavity_from_its_own_clicks(options):
-    target, _, _, views = cavity(**dict(options))
+    target, views = cavity(**dict(options))
     for camera, (_, _, labels) in enumerate(views):
         assert labels.ok, labels.message
         n = int(labels.mask.sum())

@@ -189,7 +189,7 @@ def test_openptv_calibration_of_the_cavity_next_to_mvcalibs():
     compares fits, not accuracy.
     """
     root = data_dir("openptv_cavity")
-    target, _, _, views = cavity()
+    target, views = cavity()
     world = np.asarray(target.points)
     control = optv.parameters.ControlParams(4)
     control.read_control_par(str(root / "parameters" / "ptv.par"))

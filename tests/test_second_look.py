@@ -172,7 +172,7 @@ FOUND = (41, 43, 71, 70)
 
 
 def test_second_look_on_the_cavity_photographs():
-    target, _, _, views = cavity()
+    target, views = cavity()
     hidden = np.isin(np.asarray(target.points)[:, 1], (-25.0, -15.0))  # cam1, cam2: a block
     for c, (image, detection, labels) in enumerate(views):
         before = mc.calibrate(target.points, labels.pixels, labels.mask, refine=True)
