@@ -18,8 +18,10 @@ from ._match import match_dots
 from ._pipeline import Calibration, CalibrationError, calibrate
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
+from ._second_look import _gate
 from ._second_look import second_look as _second_look
 from ._status import Status
+from ._triangulate import triangulate
 from .targets import Target, box_corner
 
 __all__ = ["ImageCalibration", "calibrate_images", "read_image"]
@@ -70,6 +72,9 @@ class ImageCalibration:
       searched.
     - `names`: a name per image (its path, or `image i`).
     - `messages`: per image, what happened: the labelling summary or why it failed.
+    - `misplaced`: the dots whose position in the target file the images contradict, by id,
+      each with its position triangulated from the images (target coordinates). They stay
+      labelled (`labels`, `mask`) and are left out of `calibration`.
     """
 
     calibration: Calibration
@@ -77,6 +82,7 @@ class ImageCalibration:
     detections: list[Detection | None]
     names: list[str]
     messages: list[str]
+    misplaced: dict = dataclasses.field(default_factory=dict)
 
     @property
     def cameras(self):
@@ -92,7 +98,7 @@ class ImageCalibration:
 
     @property
     def mask(self) -> np.ndarray:
-        return np.stack([lab.mask for lab in self.labels])
+        return _mask_of(self.labels)
 
     def raise_if_failed(self) -> ImageCalibration:
         """Raise `CalibrationError` naming every image that did not give a camera."""
@@ -118,6 +124,12 @@ class ImageCalibration:
             dots = int(self.labels[i].mask.sum())
             result = "calibrated" if status[i] == Status.OK else self._why(i, status[i])
             lines.append(f"{name:<{width}}  {blobs:>5}  {dots:>4}  {result}")
+        for i, point in self.misplaced.items():
+            where = ", ".join(f"{x:.3f}" for x in point)
+            lines.append(
+                f"dot {i}: the images put it at ({where}), not where the target says; "
+                "left out of the calibration"
+            )
         names = [Status(int(s)).name.lower() for s in status]
         return "\n".join(lines) + "\n\n" + format_table(self.calibration.report, status=names)
 
@@ -145,6 +157,68 @@ def _as_list(images) -> list:
     if not images:
         raise ValueError("`images` is empty: pass at least one image.")
     return images
+
+
+# A dot's position on the target is doubted when a free 3-D point explains its pixels so much
+# better: the drop in the squared reprojection errors over the images, each in units of its
+# image's RMS squared, beyond chi-square with 3 degrees of freedom at p = 1e-4.
+_MISPLACED_CHI2 = 21.1
+
+
+def _beyond_gate(labels: Labels, first: Labels, camera, world, look: dict) -> np.ndarray:
+    """The dots the second look added to `first` beyond the gate of `camera`'s predictions."""
+    predicted = np.asarray(camera.project(world), np.float64)
+    gate = look.get("gate") or _gate(predicted, first.pixels, first.mask)
+    added = labels.mask & ~first.mask
+    return added & (np.linalg.norm(np.nan_to_num(labels.pixels) - predicted, axis=-1) > gate)
+
+
+def _misplaced(world, labels, far, calibrated):
+    """The dots whose target position the images contradict: `(off (M,), calibration without
+    them and without `far`, the dots triangulated from the images (M, 3))`.
+
+    Each dot labelled in three or more images is triangulated from them (`far` dots included);
+    it is off when that point reprojects within every image's gate (3.5 times the image's RMS,
+    at least 0.5 px) and explains the dot's pixels better than the target's position by more
+    than `_MISPLACED_CHI2`. The worst dot first, then the rig calibrated again without it, and
+    so on (at most a tenth of the dots).
+    """
+    mask = _mask_of(labels)
+    off = np.zeros(mask.shape[1], bool)
+    while True:
+        pixels, used, calibration = calibrated(labels, far | off)
+        cameras, ok = calibration.cameras, np.asarray(calibration.ok)
+        seen, used = mask & ok[:, None], used & ok[:, None]
+        points = np.asarray(triangulate(cameras, pixels, seen).points)
+        nominal = np.linalg.norm(np.asarray(cameras.project(world)) - pixels, axis=-1)
+        free = np.linalg.norm(np.asarray(cameras.project(points)) - pixels, axis=-1)
+        rms = np.sqrt(np.sum(np.where(used, nominal**2, 0.0), 1) / np.maximum(used.sum(1), 1))
+        gate = np.maximum(0.5, 3.5 * rms)[:, None]
+        scale = np.maximum(rms, 1e-9)[:, None] ** 2
+        drop = np.sum(np.where(seen, (nominal**2 - free**2) / scale, 0.0), 0)
+        explained = np.all(~seen | (free <= gate), 0) & (seen.sum(0) >= 3) & ~off
+        score = np.where(explained, drop, -np.inf)
+        k = int(np.argmax(score))
+        if not score[k] > _MISPLACED_CHI2 or off.sum() >= len(off) // 10:
+            return off, calibration, points
+        off[k] = True
+
+
+def _mask_of(labels) -> np.ndarray:
+    """The labelled dots of every image: `(C, M)`."""
+    return np.stack([lab.mask for lab in labels])
+
+
+def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
+    """`labels` less the dots `drop`, beyond the gate in this image only."""
+    ids = ", ".join(str(int(i)) for i in np.asarray(target.ids)[drop])
+    mask = labels.mask & ~drop
+    return dataclasses.replace(
+        labels,
+        pixels=np.where(mask[:, None], labels.pixels, np.nan),
+        mask=mask,
+        message=labels.message + f"; dropped (ids {ids}): beyond the gate here only",
+    )
 
 
 def calibrate_images(
@@ -189,7 +263,12 @@ def calibrate_images(
       matched neighbours fits well (`mvcalib.second_look`: dots lost to an attached speck, glare,
       a stripe or uneven light), and re-centre the matched dots by that template where
       cross-validation says its centres predict the dots better; then calibrate again; twice.
-      A dict passes its options.
+      A dict passes its options. With three or more such images, the dots that fit well beyond
+      an image's gate are taken too, and judged across the images: a dot that a free 3-D point
+      (triangulated from every image that has it) explains far better than its position on
+      the target (by chi-square, 3 degrees of freedom, p = 1e-4; within every image's gate)
+      is *misplaced*: it stays labelled, is left out of the calibration and reported (the
+      result's `misplaced`, the messages, `print`); the other dots beyond the gate are dropped.
     - `strict`: raise `CalibrationError` if any image gives no camera.
     - `progress`: print one line per image to stderr; default: when there are more than 4.
     - `bias_iterations`: rounds of perspective-bias correction: a dot's image is an ellipse
@@ -248,20 +327,26 @@ def calibrate_images(
     dtype = jnp.result_type(float)
     world = jnp.asarray(target.points, dtype)
 
-    def calibrated(labels):
-        """The labels' pixels and mask, and every view calibrated from them."""
-        mask = np.stack([lab.mask for lab in labels])
+    def calibrated(labels, leave_out=False):
+        """The labels' pixels, the dots used (labelled, not `leave_out`) and every view
+        calibrated from them."""
+        mask = _mask_of(labels) & ~np.asarray(leave_out)
         pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))  # hidden: no influence
         calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
         return pixels, mask, calibration
 
     pixels, mask, calibration = calibrated(labels)
+    misplaced = {}
     if pictures:  # the seeded images: look again where the cameras predict the missing dots
         first = list(labels)
-        options = dict(dark_dots=detect.get("dark_dots", True), **look)
+        # With three or more, the dots beyond an image's gate are taken and judged across the
+        # images: a dot the target misplaces is off in all of them, a bad one in one.
+        check = len(pictures) >= 3
+        options = dict(dark_dots=detect.get("dark_dots", True), beyond_gate=check, **look)
         for _ in range(2):
             cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
             ok = np.asarray(calibration.ok)
+            far = np.zeros((len(labels), len(target.points)), bool)
             for i, picture in pictures.items():
                 if ok[i] and first[i].ok:
                     try:
@@ -271,7 +356,26 @@ def calibrate_images(
                         )  # fmt: skip
                     except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
                         labels[i] = first[i]
-            pixels, mask, calibration = calibrated(labels)
+                    if check:
+                        far[i] = _beyond_gate(labels[i], first[i], cameras[i], world, look)
+            if check:
+                off, calibration, points = _misplaced(world, labels, far, calibrated)
+            else:
+                pixels, mask, calibration = calibrated(labels)
+        if check:
+            # The dots beyond the gate that the target does not explain are dropped.
+            for i in np.flatnonzero((far & ~off).any(1)):
+                labels[i] = _without(labels[i], far[i] & ~off, target)
+            pixels, mask, calibration = calibrated(labels, off)
+            for k in np.flatnonzero(off):
+                misplaced[int(np.asarray(target.ids)[k])] = points[k]
+                offset = np.linalg.norm(points[k] - np.asarray(target.points[k]))
+                note = (
+                    f"; dot {int(np.asarray(target.ids)[k])} left out of the calibration: the "
+                    f"images put it {offset:.3g} {target.units} from where the target has it"
+                )
+                for i in np.flatnonzero(_mask_of(labels)[:, k]):
+                    labels[i] = dataclasses.replace(labels[i], message=labels[i].message + note)
     # (the bias is predicted from the dots' radii: a target without them keeps the centroids)
     known_radii = bool(np.all(np.isfinite(target.radii)))
     for _ in range(int(bias_iterations) if known_radii else 0):
@@ -293,6 +397,7 @@ def calibrate_images(
         detections=detections,
         names=names,
         messages=[lab.message for lab in labels],
+        misplaced=misplaced,
     )
     if strict:
         result.raise_if_failed()

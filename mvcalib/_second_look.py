@@ -39,7 +39,8 @@ exactly where":
 
 On OpenPTV's cavity photographs this finds 5 / 3 / 2 / 5 more dots of the four cameras (all the
 visible ones but the dot under a glare cloud, a dot swollen by a glare halo, a faint half-cut dot,
-a dot on the edge of a stripe and a dot that the target file misplaces by 0.1 mm), whose
+a dot on the edge of a stripe and a dot that the target file misplaces by 0.13 mm, which
+`calibrate_images` takes with `beyond_gate` and reports), whose
 leave-one-out residuals (0.03-0.90 px) lie within those of the matched dots (up to 0.8 / 1.2 /
 1.6 / 0.9 px). Fitted to the matched dots themselves (the template of their neighbours), the
 centres predict the dots better than the centroids do: cross-validated (each dot against a camera
@@ -259,6 +260,13 @@ def _radius(grey, pixels, detection, labels):
     return float(np.median(radii))
 
 
+def _gate(predicted, pixels, mask) -> float:
+    """The default gate: 3.5 times the RMS distance of the dots `mask` from their predictions,
+    at least 0.5 px."""
+    rms = np.sqrt(np.mean(np.sum((predicted[mask] - pixels[mask]) ** 2, -1)))
+    return max(0.5, 3.5 * float(rms))
+
+
 def _held_out_rms(world, candidates, mask, folds: int = 8) -> list[float]:
     """For each candidate set of pixels `(N, 2)` of the dots `mask`: the RMS distance of each
     dot from where a camera calibrated without it projects it (`folds`-fold cross-validation,
@@ -298,6 +306,7 @@ def second_look(
     refit: bool | str = "auto",
     saturation: float = 1.0,
     centre_by: str | None = None,
+    beyond_gate: bool = False,
 ) -> Labels:
     """Find the dots `labels` lacks where `camera` predicts them, by fitting a template of their
     matched neighbours to the image (see the module notes for the method).
@@ -328,6 +337,11 @@ def second_look(
       for dark dots, `"template"` for bright ones.
     - `saturation`: the level (in [0, 1]) at which the dots' brightness clips (`1 - grey` for
       dark dots, whose clip is black).
+    - `beyond_gate`: also take the missing dots that fit well but lie beyond `gate` (as far as
+      the fit reaches, 0.6 dot radii along each axis), named apart in the message: for a
+      caller that checks them otherwise. `mvcalib.calibrate_images` does, across the images:
+      a dot that the target file misplaces lies beyond the gate in every image, and one bad
+      measurement in one image only.
 
     **Returns:** the `Labels` with the dots found added (`index` -1: they are no blob of the
     detection), their ids named in the `message`. Labels that are not `ok` come back as they are.
@@ -384,9 +398,7 @@ def second_look(
     if len(matched) < max(neighbours, 1) + 1:
         return labels
     predicted = np.asarray(camera.project(world), np.float64)
-    if gate is None:
-        rms = float(np.sqrt(np.mean(np.sum((predicted[matched] - pixels[matched]) ** 2, -1))))
-        gate = max(0.5, 3.5 * rms)
+    gate = _gate(predicted, pixels, mask) if gate is None else gate
     radius = _radius(grey, pixels, detection, labels)
     if not np.isfinite(radius) or radius < 1.0:
         return labels
@@ -426,7 +438,7 @@ def second_look(
         fit["shift"] = float(np.hypot(*(fit["centre"] - fit["predicted"])))
         return fit
 
-    def verdict(fit):
+    def verdict(fit, gate):
         """Why a fit is no dot ("" if it is one)."""
         if fit is None:
             return "window leaves the image"
@@ -445,19 +457,21 @@ def second_look(
         raise ValueError(f"`refit` is True, False or 'auto'; got {refit!r}.")
     if refit == "auto" and centre_by == "centroid":
         refit = False  # (the cleaned centroid of a clean dot is its centroid again)
-    found, centres = [], {}
+    found, far, centres = [], [], {}
     for k in np.flatnonzero(~mask) if refit is False else np.arange(len(world)):
         at = pixels[k] if mask[k] else predicted[k]
         if not (np.all(np.isfinite(at)) and 0 <= at[0] < width and 0 <= at[1] < height):
             continue
         fit = look(k, at)
-        why = verdict(fit)
+        why = verdict(fit, np.inf if beyond_gate else gate)
         if mask[k]:  # refit: a matched dot keeps its centroid where the fit is not good
             if fit is not None and fit["misfit"] <= max_misfit and fit["shift"] <= gate:
                 centres[k] = fit["centre"]
         elif not why:
             found.append(k)
             centres[k] = fit["centre"]
+            if fit["shift"] > gate:
+                far.append(k)
     refitted = [k for k in centres if mask[k]]
     message, held_out = labels.message, ""
     if refit == "auto" and refitted:
@@ -468,6 +482,7 @@ def second_look(
         kept[refitted] = pixels[refitted]
         every = mask.copy()
         every[found] = True
+        every[far] = False  # (not measured to the gate: no judge of the centres)
         before, after = _held_out_rms(world, (kept, fitted), every)
         if not after < before:  # (NaN: a fold failed; keep the centroids)
             for k in refitted:
@@ -483,7 +498,12 @@ def second_look(
     index = np.where(labels.mask, labels.index, -1)
     if found:
         ids = ", ".join(str(int(i)) for i in np.asarray(target.ids)[found])
-        message += f"; second look: {len(found)} more (ids {ids})"
+        message += f"; second look: {len(found)} more (ids {ids}"
+        if far:
+            message += "; beyond the gate: " + ", ".join(
+                str(int(i)) for i in np.asarray(target.ids)[far]
+            )
+        message += ")"
     if refitted:
         message += f"; {len(refitted)} matched dots refitted{held_out}"
     return Labels(

@@ -966,7 +966,11 @@ def _calibrate_images(args) -> int:
         names=result.names,
         status=result.calibration.status,
         rms=result.calibration.report.rms,
-        meta={"target": target.name, "messages": result.messages},
+        meta={
+            "target": target.name,
+            "messages": result.messages,
+            "misplaced": {str(i): point.tolist() for i, point in result.misplaced.items()},
+        },
     )
     n_ok = int(result.ok.sum())
     print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")

@@ -186,6 +186,11 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     assert cameras.batch_shape == (4,) and np.all(np.isfinite(np.asarray(cameras.alpha_u)))
     messages = json.loads((tmp_path / "r.json").read_text())["meta"]["messages"]
     assert all("second look:" in m for m in messages), messages  # dots found again in each
+    # Dot 68 is beyond the gate in cam1 and cam4: the target file misplaces it (~0.13 mm)
+    assert "dot 68: the images put it at" in out.stdout, out.stdout
+    misplaced = json.loads((tmp_path / "r.json").read_text())["meta"]["misplaced"]
+    assert list(misplaced) == ["68"]
+    assert 0.05 < np.linalg.norm(np.subtract(misplaced["68"], (25.0, 25.0, 8.0))) < 0.3
     # an unknown dot id in the clicks: exit 1, one line naming the row
     bad = cavity_clicks(root, tmp_path / "bad.csv", ["cam1.tif,999,10,10"])
     out = run_cli(

@@ -1,6 +1,8 @@
 """The second look (`mc.second_look`): dots lost to specks and streaks found again where the
 camera predicts them, hidden dots left out; OpenPTV's cavity photographs."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -191,3 +193,34 @@ def test_second_look_on_the_cavity_photographs():
             np.abs(np.asarray(after.cameras.project(target.points))[new] - found.pixels[new]).max()
             < 1.0
         )
+
+
+# ----------------------------------------------------------- across the images: target errors
+def test_calibrate_images_finds_the_dot_the_target_misplaces_and_drops_a_bad_one():
+    """With three or more images, a dot beyond the gate in one image is judged by the others: a
+    dot that the target file misplaces is off in every image (labelled, left out of the
+    calibration, its position triangulated); a dot off in one image only is dropped."""
+    target = mc.targets.box_corner_grid(4)  # dots 44 mm apart, 11 mm radius
+    rig = mc.synthetic.random_rig(jax.random.key(1), 4, target)
+    photos = [np.array(mc.synthetic.render(rig.cameras[i], target, key=i)) for i in range(4)]
+    seeds = [rig.cameras[i] for i in range(4)]
+    truth = np.asarray(target.points)[20]
+    # The target file has dot 20 1 mm away (on its face, y = 0) from where it was printed
+    wrong = np.asarray(target.points).copy()
+    wrong[20] += [0.6, 0.0, -0.8]
+    misprinted = dataclasses.replace(target, points=wrong)
+    result = mc.calibrate_images(photos, misprinted, seeds=seeds)
+    assert list(result.misplaced) == [20] and result.mask.all()
+    assert np.linalg.norm(result.misplaced[20] - truth) < 0.3  # (1 mm off in the file)
+    assert all("dot 20 left out of the calibration" in m for m in result.messages)
+    assert "dot 20: the images put it at" in str(result)
+    assert np.all(np.asarray(result.calibration.report.rms) < 0.03)
+    # Dot 20's image moved 3 px in one photo: not the target's fault; dropped there
+    x, y = np.asarray(seeds[0].project(target.points))[20].round().astype(int)
+    photos[0][y - 30 : y + 30, x - 30 : x + 30] = np.roll(
+        photos[0][y - 30 : y + 30, x - 30 : x + 30], 3, axis=1
+    )
+    result = mc.calibrate_images(photos, target, seeds=seeds)
+    assert result.misplaced == {} and result.mask.sum(1).tolist() == [47, 48, 48, 48]
+    assert "dropped (ids 20): beyond the gate here only" in result.messages[0]
+    assert np.all(np.asarray(result.calibration.report.rms) < 0.03)
