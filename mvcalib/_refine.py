@@ -852,7 +852,7 @@ def refine(
                 "solve is NaN; see its status). (In a rig, such a camera is flagged instead: "
                 "`result == -2`.)"
             )
-    dtype = jnp.result_type(world.dtype, cameras.R.dtype)
+    dtype = _validate.result_dtype(world.dtype, cameras.R.dtype)
     solver = default_solver(dtype) if solver is None else solver
     options = dict(free=free, loss=loss, solver=solver, max_steps=max_steps)
     if not bucketed:
@@ -877,7 +877,7 @@ def refine(
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) -> Refinement:
     """`refine` of validated arrays, in one compiled program."""
-    dtype = jnp.result_type(world.dtype, cameras.R.dtype)
+    dtype = _validate.result_dtype(world.dtype, cameras.R.dtype)
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     out = _refine_batched(
         cameras, world.astype(dtype), pixels.astype(dtype), mask, free, loss, solver, max_steps

@@ -122,7 +122,7 @@ def procrustes(
             f"{tuple(dst.shape)}."
         )
     _validate.at_least("src", src, 3, "points (not collinear) to fix a rotation")
-    dtype = jnp.result_type(src.dtype, dst.dtype)
+    dtype = _validate.result_dtype(src.dtype, dst.dtype)
     if weights is None:
         weights = jnp.ones(src.shape[-2], dtype)
     weights = _validate.floating("weights", weights).astype(dtype)
@@ -176,7 +176,7 @@ def procrustes_paper(
     src = _validate.floating("src", src, (None, 3))
     dst = _validate.floating("dst", dst, (None, 3))
     _validate.at_least("src", src, 4, "points (3 independent differences to point 1)")
-    dtype = jnp.result_type(src.dtype, dst.dtype)
+    dtype = _validate.result_dtype(src.dtype, dst.dtype)
     R, t = jnp.vectorize(_paper_kernel, signature="(n,3),(n,3)->(3,3),(3)")(
         src.astype(dtype), dst.astype(dtype)
     )

@@ -1061,7 +1061,7 @@ def calibrate_rig(
     mask = _validate.boolean_mask("mask", mask, (C, F, N), xp=xp)
     if tuple(mask.shape) != (C, F, N):
         raise ValueError(f"`mask` must have shape {(C, F, N)}; got {tuple(mask.shape)}.")
-    dtype = jnp.result_type(target.dtype, pixels.dtype)
+    dtype = _validate.result_dtype(target.dtype, pixels.dtype)
     planar = _is_planar(target)
     minimum = MIN_PLANE_POINTS if planar else MIN_OBJECT_POINTS
     if concrete:

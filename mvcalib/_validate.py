@@ -18,6 +18,13 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+def result_dtype(*dtypes) -> np.dtype:
+    """The floating dtype arrays of `dtypes` are computed in: their NumPy promotion, as JAX holds
+    it (float32 unless the user enabled x64). `jnp.result_type` gives the same, but warns about
+    each float64 (e.g. a NumPy array's) that x64 is off."""
+    return jax.dtypes.canonicalize_dtype(np.result_type(*dtypes))
+
+
 def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
     """`x` as a floating JAX array (a NumPy array with `xp=np`); integers are promoted, everything
     else is refused."""
@@ -106,7 +113,7 @@ def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS, xp=jnp
         )
     if 0 in batch:
         raise ValueError(f"the camera axes are empty (batch shape {batch}).")
-    dtype = jnp.result_type(world.dtype, pixels.dtype)
+    dtype = result_dtype(world.dtype, pixels.dtype)
     world, pixels = world.astype(dtype), pixels.astype(dtype)
     mask = boolean_mask("mask", mask, (*batch, n), xp=xp)
     if is_concrete(world, pixels, mask):

@@ -97,3 +97,41 @@ def test_validation_accepts_tracers(rig):
 def test_camera_dist_shape():
     with pytest.raises(ValueError, match=r"\(k1, k2, p1, p2, k3\)"):
         mc.Camera(1.0, 1.0, 0.0, 0.0, np.eye(3), np.zeros(3), dist=np.zeros(4))
+
+
+NUMPY_IN_FLOAT32 = """
+import warnings
+warnings.simplefilter("error")  # any warning fails the run
+import jax, numpy as np
+import mvcalib as mc
+rig = mc.synthetic.random_rig(jax.random.key(0), 3)
+world, pixels = (np.asarray(x, np.float64) for x in (rig.world, rig.pixels))
+mask = np.asarray(rig.mask)
+fit = mc.calibrate(world, pixels, mask, refine=True)
+mc.refine(fit.cameras, world, pixels, mask)
+mc.triangulate(fit.cameras, np.asarray(fit.cameras.project(world), np.float64))
+mc.procrustes(world, world + 1.0)
+board = mc.synthetic.board_rig(jax.random.key(0), 3, 20, noise=0.3)
+target, views, seen = (np.asarray(x) for x in (board.target, board.pixels, board.mask))
+mc.calibrate_rig(target.astype(np.float64), views.astype(np.float64), seen)
+use = seen[0].sum(1) >= 4
+mc.calibrate_planar(target.astype(np.float64), views[0][use].astype(np.float64), seen[0][use])
+dots = mc.targets.box_corner()
+photos = [mc.synthetic.render(rig.cameras[i], dots, key=i) for i in range(3)]
+mc.calibrate_images(photos, dots, seeds=[rig.cameras[i] for i in range(3)])
+print(fit.cameras.R.dtype)
+"""
+
+
+def test_numpy_float64_input_without_x64_gives_no_warning():
+    """JAX's default (x64 off) with NumPy float64 data, the common case: computed in float32
+    without a warning (`jnp.result_type` of a float64 dtype warns; the library promotes in NumPy).
+    In a fresh process: the tests run with x64 on."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", NUMPY_IN_FLOAT32], capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["float32"]
