@@ -97,36 +97,40 @@ def _guessed_intrinsics(P: np.ndarray) -> np.ndarray | None:
 
 def _pose(K: np.ndarray, world: np.ndarray, pixels: np.ndarray, found: np.ndarray, start=None):
     """`P = K [R | t]` of the pose that best projects `world[found]` onto `pixels[found]`, from
-    `start (R, t)` or from the homography of the points' best-fitting plane; and its RMS."""
-    import jax.numpy as jnp
+    `start (R, t)` or from the homography of the points' best-fitting plane; and its RMS.
 
-    from . import _refine
-    from ._planar import _homography_kernel
-    from ._planar import _pose as _plane_pose
+    Least squares over a rotation (a rotation vector applied to the start's) and `t` by SciPy's
+    Levenberg-Marquardt, the start from Zhang's eq. 10 (as `_planar._pose`): a few dozen points
+    on the host, where JAX would compile for seconds for every number of them.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
 
-    pts = world[found]
+    points, observed = world[found], pixels[found]
     if start is None:  # the plane through the points: x_plane = A (X - c)
-        c = pts.mean(0)
-        A = np.linalg.svd(pts - c)[2]
+        c = points.mean(0)
+        A = np.linalg.svd(points - c)[2]
         A[2] = np.cross(A[0], A[1])
-        q = (pts - c) @ A[:2].T
-        H, _ = _homography_kernel(
-            jnp.asarray(q), jnp.asarray(pixels[found]), jnp.ones(len(q), bool), 1e-12
-        )
-        Rp, tp = _plane_pose(jnp.asarray(K), H, jnp.asarray(q), jnp.ones(len(q), bool))
-        R = np.asarray(Rp) @ A
-        start = (R, np.asarray(tp) - R @ c)
-    camera = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *start)
-    out = _refine.refine(
-        camera,
-        world,
-        np.where(found[:, None], pixels, 0.0),
-        found,
-        fix=("intrinsics",),
-        distortion=(),
-    )
-    R, t = np.asarray(out.cameras.R), np.asarray(out.cameras.t)
-    return K @ np.c_[R, t], (R, t), float(out.rms_after)
+        q = (points - c) @ A[:2].T
+        M = np.linalg.solve(K, _homography(q, observed))
+        scale = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
+        scale *= -1.0 if np.sum(q @ M[2, :2] + M[2, 2]) < 0 else 1.0  # the points in front
+        r1, r2 = scale * M[:, 0], scale * M[:, 1]
+        U, _, Vt = np.linalg.svd(np.stack([r1, r2, np.cross(r1, r2)], -1))
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt @ A
+        start = (R, scale * M[:, 2] - R @ c)
+
+    def rotation(p):
+        return Rotation.from_rotvec(p[:3]).as_matrix() @ start[0]
+
+    def residuals(p):
+        x = (points @ rotation(p).T + p[3:]) @ K.T
+        return (x[:, :2] / x[:, 2:] - observed).ravel()
+
+    fit = least_squares(residuals, np.r_[0.0, 0.0, 0.0, start[1]], method="lm", x_scale="jac")
+    R, t = rotation(fit.x), fit.x[3:]
+    rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 2) ** 2, -1))))
+    return K @ np.c_[R, t], (R, t), rms
 
 
 def _fit(world, pixels, found, K, pose):
