@@ -43,11 +43,12 @@ a dot on the edge of a stripe and a dot that the target file misplaces by 0.13 m
 `calibrate_images` takes with `beyond_gate` and reports), whose
 leave-one-out residuals (0.03-0.90 px) lie within those of the matched dots (up to 0.8 / 1.2 /
 1.6 / 0.9 px). Fitted to the matched dots themselves (the template of their neighbours), the
-centres predict the dots better than the centroids do: cross-validated (each dot against a camera
-calibrated without it, 8 folds), 0.294 / 0.373 / 0.584 / 0.403 px with the centroids and 0.171 /
-0.321 / 0.472 / 0.382 px with the fits. `refit="auto"` (the default) makes that comparison for
-each image and keeps the better centres: here the fits, refined RMS 0.147 / 0.241 / 0.423 / 0.332
-px, where the matched centroids alone gave 0.255 / 0.279 / 0.521 / 0.344.
+centres predict the dots better than the centroids do: cross-validated (each dot against a DLT
+camera calibrated without it, 8 folds), 0.308 / 0.365 / 0.551 / 0.429 px with the centroids and
+0.178 / 0.323 / 0.445 / 0.397 px with the fits. `refit="auto"` (the default) makes that
+comparison for each image and keeps the better centres: here the fits, refined RMS 0.147 / 0.191
+/ 0.413 / 0.332 px (`calibrate_images`, dot 68 left out as misplaced), where the matched
+centroids alone gave 0.255 / 0.279 / 0.521 / 0.344.
 """
 
 from __future__ import annotations
@@ -280,7 +281,7 @@ def _held_out_rms(world, candidates, mask, folds: int = 8) -> list[float]:
     held = np.stack([mask & (fold != j) for j in range(folds)])  # (folds, N): the fit's dots
     pixels = np.concatenate([np.broadcast_to(c, (folds, *c.shape)) for c in candidates])
     masks = np.concatenate([held] * len(candidates))
-    fit = calibrate(world, np.where(masks[..., None], pixels, 0.0), masks, refine=True)
+    fit = calibrate(world, np.where(masks[..., None], pixels, 0.0), masks)
     projected = np.asarray(fit.cameras.project(world)).reshape(len(candidates), folds, -1, 2)
     out = []
     for c, candidate in enumerate(candidates):
@@ -330,7 +331,7 @@ def second_look(
       template of its neighbours, never itself), where those fit well: `True`; `False` keeps
       them; `"auto"` (the default) keeps the fits only if they predict the dots better, by
       cross-validation: the RMS distance of each dot from where a camera calibrated without it
-      (`mvcalib.calibrate(..., refine=True)`, 8 folds) projects it, with the one set of centres
+      (the DLT, `mvcalib.calibrate`, 8 folds) projects it, with the one set of centres
       against the other. (With `centre_by="centroid"`, `"auto"` keeps them: a clean dot's
       cleaned centroid is its centroid again, and the fits take ~0.5 s a dot.)
     - `centre_by`: `"template"` or `"centroid"` (see the module notes); default `"centroid"`

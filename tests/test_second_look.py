@@ -166,10 +166,10 @@ def test_calibrate_images_looks_again_in_seeded_images():
 
 # ------------------------------------------------------------------------ real photographs
 # Issue 41: OpenPTV's cavity. Visible: 44 / 45 / 73 / 73 of 73 dots; matched before: 36 / 40 /
-# 69 / 65; with the second look 41 / 43 / 71 / 70 (measured), and the matched dots re-centred by
-# their neighbours' template (`refit="auto"` chose it in every camera: cross-validated RMS 0.294 /
-# 0.373 / 0.584 / 0.403 -> 0.171 / 0.321 / 0.472 / 0.382 px), refined RMS 0.147 / 0.241 / 0.423 /
-# 0.332 px against 0.255 / 0.279 / 0.521 / 0.344.
+# 69 / 65; with the second look 41 / 43 / 71 / 70 (measured; 42 / 43 / 71 / 71 in calibrate_images,
+# which takes the misplaced dot 68 beyond the gate), and the matched dots re-centred by their
+# neighbours' template (`refit="auto"` chose it in every camera: cross-validated DLT RMS 0.308 /
+# 0.365 / 0.551 / 0.429 -> 0.178 / 0.323 / 0.445 / 0.397 px in calibrate_images).
 FOUND = (41, 43, 71, 70)
 
 
