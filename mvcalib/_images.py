@@ -209,6 +209,23 @@ def _mask_of(labels) -> np.ndarray:
     return np.stack([lab.mask for lab in labels])
 
 
+def _report_misplaced(labels: list, target: Target, off: np.ndarray, points) -> dict:
+    """`{dot id: its triangulated position}` of the dots `off`, each named in the messages of
+    the images that labelled it (`labels` amended in place)."""
+    misplaced = {}
+    for k in np.flatnonzero(off):
+        dot = int(np.asarray(target.ids)[k])
+        misplaced[dot] = points[k]
+        offset = np.linalg.norm(points[k] - np.asarray(target.points[k]))
+        note = (
+            f"; dot {dot} left out of the calibration: the images put it {offset:.3g} "
+            f"{target.units} from where the target has it"
+        )
+        for i in np.flatnonzero(_mask_of(labels)[:, k]):
+            labels[i] = dataclasses.replace(labels[i], message=labels[i].message + note)
+    return misplaced
+
+
 def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
     """`labels` less the dots `drop`, beyond the gate in this image only."""
     ids = ", ".join(str(int(i)) for i in np.asarray(target.ids)[drop])
@@ -262,7 +279,7 @@ def calibrate_images(
       where it predicts the dots that were not matched, and add those that a template of their
       matched neighbours fits well (`mvcalib.second_look`: dots lost to an attached speck, glare,
       a stripe or uneven light), and re-centre the matched dots by that template where
-      cross-validation says its centres predict the dots better; then calibrate again; twice.
+      cross-validation says its centres predict the dots better; then calibrate again.
       A dict passes its options. With three or more such images, the dots that fit well beyond
       an image's gate are taken too, and judged across the images: a dot that a free 3-D point
       (triangulated from every image that has it) explains far better than its position on
@@ -338,44 +355,33 @@ def calibrate_images(
     pixels, mask, calibration = calibrated(labels)
     misplaced = {}
     if pictures:  # the seeded images: look again where the cameras predict the missing dots
-        first = list(labels)
         # With three or more, the dots beyond an image's gate are taken and judged across the
         # images: a dot the target misplaces is off in all of them, a bad one in one.
         check = len(pictures) >= 3
         options = dict(dark_dots=detect.get("dark_dots", True), beyond_gate=check, **look)
-        for _ in range(2):
-            cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
-            ok = np.asarray(calibration.ok)
-            far = np.zeros((len(labels), len(target.points)), bool)
-            for i, picture in pictures.items():
-                if ok[i] and first[i].ok:
-                    try:
-                        labels[i] = _second_look(
-                            picture, first[i], target, cameras[i], detection=detections[i],
-                            **options,
-                        )  # fmt: skip
-                    except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
-                        labels[i] = first[i]
-                    if check:
-                        far[i] = _beyond_gate(labels[i], first[i], cameras[i], world, look)
-            if check:
-                off, calibration, points = _misplaced(world, labels, far, calibrated)
-            else:
-                pixels, mask, calibration = calibrated(labels)
+        cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
+        ok = np.asarray(calibration.ok)
+        far = np.zeros((len(labels), len(target.points)), bool)
+        for i, picture in pictures.items():
+            if ok[i] and labels[i].ok:
+                first = labels[i]
+                try:
+                    labels[i] = _second_look(
+                        picture, first, target, cameras[i], detection=detections[i], **options
+                    )
+                except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
+                    pass
+                if check:
+                    far[i] = _beyond_gate(labels[i], first, cameras[i], world, look)
         if check:
+            off, calibration, points = _misplaced(world, labels, far, calibrated)
             # The dots beyond the gate that the target does not explain are dropped.
             for i in np.flatnonzero((far & ~off).any(1)):
                 labels[i] = _without(labels[i], far[i] & ~off, target)
             pixels, mask, calibration = calibrated(labels, off)
-            for k in np.flatnonzero(off):
-                misplaced[int(np.asarray(target.ids)[k])] = points[k]
-                offset = np.linalg.norm(points[k] - np.asarray(target.points[k]))
-                note = (
-                    f"; dot {int(np.asarray(target.ids)[k])} left out of the calibration: the "
-                    f"images put it {offset:.3g} {target.units} from where the target has it"
-                )
-                for i in np.flatnonzero(_mask_of(labels)[:, k]):
-                    labels[i] = dataclasses.replace(labels[i], message=labels[i].message + note)
+            misplaced = _report_misplaced(labels, target, off, points)
+        else:
+            pixels, mask, calibration = calibrated(labels)
     # (the bias is predicted from the dots' radii: a target without them keeps the centroids)
     known_radii = bool(np.all(np.isfinite(target.radii)))
     for _ in range(int(bias_iterations) if known_radii else 0):

@@ -45,8 +45,8 @@ leave-one-out residuals (0.03-0.90 px) lie within those of the matched dots (up 
 1.6 / 0.9 px). Fitted to the matched dots themselves (the template of their neighbours), the
 centres predict the dots better than the centroids do: cross-validated (each dot against a DLT
 camera calibrated without it, 8 folds), 0.308 / 0.365 / 0.551 / 0.429 px with the centroids and
-0.178 / 0.323 / 0.445 / 0.397 px with the fits. `refit="auto"` (the default) makes that
-comparison for each image and keeps the better centres: here the fits, refined RMS 0.147 / 0.191
+0.178 / 0.322 / 0.445 / 0.397 px with the fits. `refit="auto"` (the default) makes that
+comparison for each image and keeps the better centres: here the fits, refined RMS 0.147 / 0.190
 / 0.413 / 0.332 px (`calibrate_images`, dot 68 left out as misplaced), where the matched
 centroids alone gave 0.255 / 0.279 / 0.521 / 0.344.
 """

@@ -169,7 +169,7 @@ def test_calibrate_images_looks_again_in_seeded_images():
 # 69 / 65; with the second look 41 / 43 / 71 / 70 (measured; 42 / 43 / 71 / 71 in calibrate_images,
 # which takes the misplaced dot 68 beyond the gate), and the matched dots re-centred by their
 # neighbours' template (`refit="auto"` chose it in every camera: cross-validated DLT RMS 0.308 /
-# 0.365 / 0.551 / 0.429 -> 0.178 / 0.323 / 0.445 / 0.397 px in calibrate_images).
+# 0.365 / 0.551 / 0.429 -> 0.178 / 0.322 / 0.445 / 0.397 px in calibrate_images).
 FOUND = (41, 43, 71, 70)
 
 
