@@ -11,11 +11,25 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _small, _validate
+from . import _buckets, _small, _validate
 from ._rotation import nearest_rotation
 
 # The lens models and their distortion coefficients, in OpenCV's order (`cv2` and `cv2.fisheye`).
 LENSES = {"pinhole": ("k1", "k2", "p1", "p2", "k3"), "fisheye": ("k1", "k2", "k3", "k4")}
+
+
+def _projection(camera: Camera, world):
+    """`Camera.project` of validated `world`."""
+    xd, yd = _lens(camera._camera_coordinates(world), camera.dist[..., None, :])  # noqa: SLF001
+    u = camera.alpha_u[..., None] * xd + camera.skew[..., None] * yd + camera.u0[..., None]
+    v = camera.alpha_v[..., None] * yd + camera.v0[..., None]
+    return jnp.stack([u, v], -1)
+
+
+# Called on concrete arrays, the projection's dozen operations would run one by one, each
+# compiled at its first shape (~0.5 s for the first call); as one program it compiles once
+# (~0.1 s) and runs ~8x faster.
+_compiled_projection = eqx.filter_jit(_projection)
 
 
 def lens_of(dist) -> str:
@@ -174,11 +188,11 @@ class Camera(eqx.Module):
 
         One target seen by a rig of C cameras: `world` `(N, 3)` gives pixels `(C, N, 2)`.
         """
-        world = _validate.floating("world", world, (None, 3))
-        xd, yd = _lens(self._camera_coordinates(world), self.dist[..., None, :])
-        u = self.alpha_u[..., None] * xd + self.skew[..., None] * yd + self.u0[..., None]
-        v = self.alpha_v[..., None] * yd + self.v0[..., None]
-        return jnp.stack([u, v], -1)
+        xp = jnp if isinstance(world, jax.Array) else np  # (NumPy data: converted by the jit)
+        world = _validate.floating("world", world, (None, 3), xp=xp)
+        if _buckets.applies(self, world):  # concrete arrays: one compiled program
+            return _compiled_projection(self, world)
+        return _projection(self, world)  # (traced: part of the caller's program)
 
     def rays(self, pixels, *, iterations: int = 20) -> Float[Array, "*batch N 3"]:
         """Unit directions in camera coordinates of the rays through `pixels` `(..., N, 2)`: the
