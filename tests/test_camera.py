@@ -139,3 +139,21 @@ def test_tsai_conversion_round_trip_and_paper_centre():
     np.testing.assert_allclose(back, xy, atol=1e-12)
     with pytest.raises(ValueError, match="exactly one"):
         mc.image_to_pixel(xy, (0.01, 0.01))
+
+
+def test_project_on_concrete_arrays_is_one_program_and_the_traced_code(caplog):
+    """Called eagerly, `project` compiles one program for a new shape (not one per operation),
+    and gives what the same code traced into the caller's program gives."""
+    import logging
+
+    rig = mc.synthetic.random_rig(jax.random.key(3), 3).cameras
+    world = np.random.default_rng(0).uniform(0.0, 150.0, (23, 3))  # a shape nothing else uses
+    jax.clear_caches()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        eager = rig.project(world)
+    compiled = [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()]
+    assert len(compiled) == 1 and "_projection" in compiled[0], compiled
+    traced = jax.jit(lambda c, w: c.project(w))(rig, world)
+    np.testing.assert_allclose(eager, traced, rtol=0, atol=1e-9)
+    jaxpr = str(jax.make_jaxpr(lambda c, w: c.project(w))(rig, world))
+    assert "pjit" not in jaxpr and "jit[" not in jaxpr  # (inlined: no nested program)
