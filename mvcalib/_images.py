@@ -18,7 +18,7 @@ from ._match import match_dots
 from ._pipeline import Calibration, CalibrationError, calibrate
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
-from ._second_look import _gate
+from ._second_look import _gate, _rms
 from ._second_look import second_look as _second_look
 from ._status import Status
 from ._triangulate import triangulate
@@ -168,7 +168,7 @@ _MISPLACED_CHI2 = 21.1
 def _beyond_gate(labels: Labels, first: Labels, camera, world, look: dict) -> np.ndarray:
     """The dots the second look added to `first` beyond the gate of `camera`'s predictions."""
     predicted = np.asarray(camera.project(world), np.float64)
-    gate = look.get("gate") or _gate(predicted, first.pixels, first.mask)
+    gate = look.get("gate") or _gate(_rms(predicted, first.pixels, first.mask))
     added = labels.mask & ~first.mask
     return added & (np.linalg.norm(np.nan_to_num(labels.pixels) - predicted, axis=-1) > gate)
 
@@ -190,10 +190,11 @@ def _misplaced(world, labels, far, calibrated):
         cameras, ok = calibration.cameras, np.asarray(calibration.ok)
         seen, used = mask & ok[:, None], used & ok[:, None]
         points = np.asarray(triangulate(cameras, pixels, seen).points)
-        nominal = np.linalg.norm(np.asarray(cameras.project(world)) - pixels, axis=-1)
+        predicted = np.asarray(cameras.project(world))
+        nominal = np.linalg.norm(predicted - pixels, axis=-1)
         free = np.linalg.norm(np.asarray(cameras.project(points)) - pixels, axis=-1)
-        rms = np.sqrt(np.sum(np.where(used, nominal**2, 0.0), 1) / np.maximum(used.sum(1), 1))
-        gate = np.maximum(0.5, 3.5 * rms)[:, None]
+        rms = _rms(predicted, pixels, used)
+        gate = _gate(rms)[:, None]
         scale = np.maximum(rms, 1e-9)[:, None] ** 2
         drop = np.sum(np.where(seen, (nominal**2 - free**2) / scale, 0.0), 0)
         explained = np.all(~seen | (free <= gate), 0) & (seen.sum(0) >= 3) & ~off

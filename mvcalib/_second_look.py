@@ -261,11 +261,17 @@ def _radius(grey, pixels, detection, labels):
     return float(np.median(radii))
 
 
-def _gate(predicted, pixels, mask) -> float:
-    """The default gate: 3.5 times the RMS distance of the dots `mask` from their predictions,
-    at least 0.5 px."""
-    rms = np.sqrt(np.mean(np.sum((predicted[mask] - pixels[mask]) ** 2, -1)))
-    return max(0.5, 3.5 * float(rms))
+def _rms(predicted, pixels, mask):
+    """The RMS distance (px) of the dots `mask` `(..., N)` from their predictions `(..., N, 2)`,
+    over the last axis of dots (0 where there is none)."""
+    square = np.where(mask, np.sum((predicted - np.nan_to_num(pixels)) ** 2, -1), 0.0)
+    return np.sqrt(np.sum(square, -1) / np.maximum(np.sum(mask, -1), 1))
+
+
+def _gate(rms):
+    """The default gate for dots `rms` px from their predictions: 3.5 times that, at least 0.5
+    px (here and in `calibrate_images`' check across the images)."""
+    return np.maximum(0.5, 3.5 * rms)
 
 
 def _held_out_rms(world, candidates, mask, folds: int = 8) -> list[float]:
@@ -399,7 +405,7 @@ def second_look(
     if len(matched) < max(neighbours, 1) + 1:
         return labels
     predicted = np.asarray(camera.project(world), np.float64)
-    gate = _gate(predicted, pixels, mask) if gate is None else gate
+    gate = float(_gate(_rms(predicted, pixels, mask))) if gate is None else gate
     radius = _radius(grey, pixels, detection, labels)
     if not np.isfinite(radius) or radius < 1.0:
         return labels
