@@ -174,8 +174,9 @@ def _beyond_gate(labels: Labels, first: Labels, camera, world, look: dict) -> np
 
 
 def _misplaced(world, labels, far, calibrated):
-    """The dots whose target position the images contradict: `(off (M,), calibration without
-    them and without `far`, the dots triangulated from the images (M, 3))`.
+    """The dots whose target position the images contradict: `(off (M,), the dots triangulated
+    from the images (M, 3), calibrated(labels, far | off))`, the last the calibration without
+    them and without `far` (also after `far & ~off` are dropped from the labels: the same dots).
 
     Each dot labelled in three or more images is triangulated from them (`far` dots included);
     it is off when that point reprojects within every image's gate (3.5 times the image's RMS,
@@ -186,7 +187,8 @@ def _misplaced(world, labels, far, calibrated):
     mask = _mask_of(labels)
     off = np.zeros(mask.shape[1], bool)
     while True:
-        pixels, used, calibration = calibrated(labels, far | off)
+        last = calibrated(labels, far | off)
+        pixels, used, calibration = last
         cameras, ok = calibration.cameras, np.asarray(calibration.ok)
         seen, used = mask & ok[:, None], used & ok[:, None]
         points = np.asarray(triangulate(cameras, pixels, seen).points)
@@ -201,7 +203,7 @@ def _misplaced(world, labels, far, calibrated):
         score = np.where(explained, drop, -np.inf)
         k = int(np.argmax(score))
         if not score[k] > _MISPLACED_CHI2 or off.sum() >= len(off) // 10:
-            return off, calibration, points
+            return off, points, last
         off[k] = True
 
 
@@ -213,7 +215,7 @@ def _mask_of(labels) -> np.ndarray:
 def _report_misplaced(labels: list, target: Target, off: np.ndarray, points) -> dict:
     """`{dot id: its triangulated position}` of the dots `off`, each named in the messages of
     the images that labelled it (`labels` amended in place)."""
-    misplaced = {}
+    misplaced, labelled = {}, _mask_of(labels)
     for k in np.flatnonzero(off):
         dot = int(np.asarray(target.ids)[k])
         misplaced[dot] = points[k]
@@ -222,7 +224,7 @@ def _report_misplaced(labels: list, target: Target, off: np.ndarray, points) -> 
             f"; dot {dot} left out of the calibration: the images put it {offset:.3g} "
             f"{target.units} from where the target has it"
         )
-        for i in np.flatnonzero(_mask_of(labels)[:, k]):
+        for i in np.flatnonzero(labelled[:, k]):
             labels[i] = dataclasses.replace(labels[i], message=labels[i].message + note)
     return misplaced
 
@@ -375,11 +377,10 @@ def calibrate_images(
                 if check:
                     far[i] = _beyond_gate(labels[i], first, cameras[i], world, look)
         if check:
-            off, calibration, points = _misplaced(world, labels, far, calibrated)
+            off, points, (pixels, mask, calibration) = _misplaced(world, labels, far, calibrated)
             # The dots beyond the gate that the target does not explain are dropped.
             for i in np.flatnonzero((far & ~off).any(1)):
                 labels[i] = _without(labels[i], far[i] & ~off, target)
-            pixels, mask, calibration = calibrated(labels, off)
             misplaced = _report_misplaced(labels, target, off, points)
         else:
             pixels, mask, calibration = calibrated(labels)
