@@ -36,6 +36,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from _common import machine_info, write_results  # noqa: E402
+from first_call import child_env  # noqa: E402
 
 import mvcalib as mc  # noqa: E402
 
@@ -43,12 +44,11 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("MVCALIB_DATA", ROOT / ".." / "shared" / "data")).resolve()
 RESULTS = ROOT / "benchmarks" / "results" / "real_data.json"
 sys.path.insert(0, str(ROOT / "tests"))
+from _real_data import cavity_clicks, read_oxford_house  # noqa: E402  (not conftest's settings)
 
 
 def oxford_house() -> dict:
-    from test_real_data import load_oxford_house  # the one loader, shared with the tests
-
-    world, pixels, P_published = load_oxford_house()
+    world, pixels, P_published = read_oxford_house(DATA / "oxford_house")
     mask = np.all(np.isfinite(pixels), -1)
     pixels = np.nan_to_num(pixels)
     published = mc.Camera.from_projection(P_published)
@@ -159,17 +159,9 @@ def cavity_photos() -> dict:
     import tempfile
 
     root = DATA / "openptv_cavity"
-    ids, clicks = mc.io.load_openptv_clicks(
-        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
-    )
-    env = dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false", MVCALIB_COMPILATION_CACHE="0")
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)
     out = {}
     with tempfile.TemporaryDirectory() as folder:
-        rows = ["image,dot_id,pixel_x,pixel_y"]
-        for c in range(4):
-            rows += [f"cam{c + 1}.tif,{i},{x},{y}" for i, (x, y) in zip(ids[c], clicks[c])]
-        (Path(folder) / "clicks.csv").write_text("\n".join(rows) + "\n")
+        cavity_clicks(root, Path(folder) / "clicks.csv")
         for refine in ([], ["--refine"]):
             rig = Path(folder) / "rig.json"
             command = [
@@ -181,7 +173,9 @@ def cavity_photos() -> dict:
                 *refine,
             ]  # fmt: skip
             start = time.perf_counter()
-            done = subprocess.run(command, env=env, capture_output=True, text=True, cwd=ROOT)
+            done = subprocess.run(
+                command, env=child_env(), capture_output=True, text=True, cwd=ROOT
+            )
             seconds = time.perf_counter() - start
             if done.returncode != 0:
                 raise RuntimeError(f"calibrate-images failed:\n{done.stderr[-2000:]}")

@@ -6,6 +6,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from _real_data import cavity_clicks
 from conftest import cavity, data_dir
 
 import mvcalib as mc
@@ -147,17 +148,6 @@ def test_openptv_cavity_from_its_own_clicks(options):
 
 
 # ------------------------------------------------------------------------ the command line
-def cavity_clicks(root, path, rows=None):
-    ids, pixels = mc.io.load_openptv_clicks(
-        root / "parameters" / "man_ori.par", root / "parameters" / "man_ori.dat"
-    )
-    lines = ["image,dot_id,pixel_x,pixel_y"]
-    for c in range(4):
-        lines += [f"cam{c + 1}.tif,{i},{x},{y}" for i, (x, y) in zip(ids[c], pixels[c])]
-    path.write_text("\n".join(lines + (rows or [])) + "\n")
-    return path
-
-
 def run_cli(*args):
     import subprocess
     import sys

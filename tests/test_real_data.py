@@ -3,23 +3,14 @@
 import jax
 import numpy as np
 import pytest
+from _real_data import read_oxford_house
 from conftest import data_dir
 
 import mvcalib as mc
 
 
 def load_oxford_house():
-    root = data_dir("oxford_house")
-    world = np.loadtxt(root / "3D" / "house.p3d")
-    rows = [line.split() for line in (root / "2D" / "house.nview-corners").read_text().splitlines()]
-    P, views = [], []
-    for v in range(10):
-        corners = np.loadtxt(root / "2D" / f"house.{v:03d}.corners")
-        idx = np.array([int(r[v]) if r[v] != "*" else -1 for r in rows])
-        pixels = np.where((idx >= 0)[:, None], corners[np.maximum(idx, 0)], np.nan)
-        P.append(np.loadtxt(root / "3D" / f"house.{v:03d}.P"))
-        views.append(pixels)
-    return world, np.stack(views), np.stack(P)
+    return read_oxford_house(data_dir("oxford_house"))
 
 
 def test_oxford_house_dlt_fits_as_well_as_the_published_cameras():
