@@ -644,6 +644,11 @@ def _rms(P, world, pixels, visible, depth):
     return jnp.sqrt(jnp.sum(err2) / jnp.maximum(jnp.sum(visible), 1))
 
 
+# The least focal length, in units of the pixels' spread, of a DLT camera that is not degenerate
+# (`_camera`): 1e-3, a field of view of 179.9 degrees.
+_MIN_FOCAL = 1e-3
+
+
 def _camera(
     world, pixels, mask, visible, v, s_11, norm, s3, c3, s2, c2, rcond, max_relative_rms, compact
 ):
@@ -667,10 +672,18 @@ def _camera(
 
     condition = norm / s_11
     n_visible = jnp.sum(visible)
+    # A camera whose focal lengths are negligible against its pixels' spread (`1 / s2`) sees
+    # them over ~180 degrees: no camera. With all but one point on a plane a one-parameter family
+    # of P fits them, and the DLT may take a near-singular member: with noise or lens distortion
+    # `s_11` clears its threshold, and half of such cameras came out OK with focal length ~0
+    # (0.01-0.3 px of noise; the box corner's floor dots and one more). With ||m3|| = 1,
+    # det M = alpha_u alpha_v whatever the principal point.
+    det = _small.triple(P[0], P[1], P[2])
+    sideways = ~(jnp.abs(det) * s2 * s2 > _MIN_FOCAL**2)
     # the checks computed into memory first: else XLA computes them inside `jnp.select`'s
     # reduction, camera by camera (the checks and the decomposition of 4096 cameras: 0.31 against
     # 0.24 µs per camera)
-    checks = _small.materialised(jnp.stack([
+    nonfinite, few, singular, behind, poor, sideways = _small.materialised(jnp.stack([
         ~all_finite,
         n_visible < _validate.MIN_POINTS,
         ~(s_11 > rcond * norm),
@@ -678,9 +691,12 @@ def _camera(
         poor_fit(
             _rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms, compact
         ),
+        sideways,
     ]))  # fmt: skip
+    # (a wild pixel's point may be sideways too: said POINTS_BEHIND or POOR_FIT, as before)
+    checks = [nonfinite, few, singular | (sideways & ~poor), behind, poor]
     status = jnp.select(
-        list(checks),
+        checks,
         [
             Status.NON_FINITE,
             Status.TOO_FEW_POINTS,
@@ -693,7 +709,7 @@ def _camera(
     P = jnp.where(status == Status.OK, P, jnp.nan)
     # With the points in front, det(M) < 0 means the world frame is mirrored relative to the
     # camera: left-handed world coordinates (the Oxford VGG sets are) or pixels with y up.
-    mirrored = _small.triple(P[0], P[1], P[2]) < 0
+    mirrored = (det < 0) & (status == Status.OK)
     return P, status, condition, mirrored
 
 
