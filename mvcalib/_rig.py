@@ -641,17 +641,12 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
     """Levenberg–Marquardt (Gauss–Newton model, Marquardt's scaling) for the rig's problem, with
     the normal equations built by blocks (`options["normal"](y, args) -> _Normal`) and solved
     with the frames eliminated (`_schur_solve`). Its steps, damping updates and stopping tests
-    are `mvcalib.SecantLM`'s without the secant term, except for the damping's update, Nielsen's
-    (1999): an accepted step multiplies it by `max(1/100, 1 - (2 rho - 1)^3)`, `rho` the actual
-    over the predicted decrease of the cost, and a rejected one by 2, 4, 8, ... The reduced camera
-    system's condition number reaches 1e10 (pixels of focal length against distortion), and
-    Marquardt's scaled damping bends the step until it is below ~1e-8: at a fixed 10 per good
-    step the solve crept there (30 steps against 10 on 8 cameras x 100 frames). Along a curved
-    valley (caliscope's rig with its intrinsics free: each camera's principal point against its
-    pose), a fixed 100 overshoots the damping that works and every good step was followed by two
-    rejected ones; Nielsen's keeps it near that damping: 70 against 209 steps there, the same
-    5-10 on synthetic rigs. Converged when an accepted step is shorter than `rtol` standard errors,
-    or a trial changed the cost by its rounding only.
+    are `mvcalib.SecantLM`'s without the secant term, except that a good step divides the damping
+    by 100, not 10: the reduced camera system's condition number reaches 1e10 (pixels of focal
+    length against distortion), Marquardt's scaled damping bends the step until it is below
+    ~1e-8, and at 10 per step the solve crept there (30 steps against 10 on 8 cameras x 100
+    frames). Converged when an accepted step is shorter than `rtol` standard errors, or a trial
+    changed the cost by its rounding only.
 
     The normal equations are built in one place, the step: its first evaluates them at the seed
     (a step of zero, always accepted), so that the compiled program holds one copy of their
@@ -674,7 +669,7 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
             ),
             fresh=jnp.asarray(True),
             damping=jnp.asarray(self.initial_damping, dtype),
-            growth=jnp.asarray(2.0, dtype),
+            growth=jnp.asarray(10.0, dtype),
             done=jnp.asarray(False),
             num_steps=jnp.asarray(0),
         )
@@ -691,8 +686,7 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
         quadratic = _quadratic(n, dc, df)
         predicted = -2.0 * (jnp.sum(dc * n.gc) + jnp.sum(df * n.gf)) - quadratic
         actual = n.cost - cost_new
-        rho = actual / jnp.where(predicted > 0, predicted, 1.0)
-        factor = jnp.where(predicted > 0, jnp.maximum(0.01, 1.0 - (2.0 * rho - 1.0) ** 3), 1.0)
+        good = actual > 0.25 * predicted
         dof = jnp.maximum(options["n_residuals"] - options["n_parameters"], 1)
         tolerance = self.rtol**2 * jnp.minimum(cost_new, n.cost) / dof
         short = (quadratic <= tolerance) | (jnp.maximum(self.norm(dc), self.norm(df)) <= self.atol)
@@ -703,7 +697,9 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
         done = ~fresh & ((accept & short) | exact | stalled | rounding)
         damping = jnp.where(
             accept,
-            jnp.where(fresh, state.damping, jnp.maximum(factor * state.damping, _MIN_DAMPING)),
+            jnp.where(
+                good & ~fresh, jnp.maximum(0.01 * state.damping, _MIN_DAMPING), state.damping
+            ),
             state.damping * state.growth,
         )
         keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
@@ -711,7 +707,7 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
             normal=keep(new, n),
             fresh=jnp.asarray(False),
             damping=damping,
-            growth=jnp.where(accept, 2.0, 2.0 * state.growth),
+            growth=jnp.where(accept, 10.0, 2.0 * state.growth),
             done=done,
             num_steps=state.num_steps + 1,
         )
