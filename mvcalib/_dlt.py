@@ -679,11 +679,11 @@ def _camera(
     # (0.01-0.3 px of noise; the box corner's floor dots and one more). With ||m3|| = 1,
     # det M = alpha_u alpha_v whatever the principal point.
     det = _small.triple(P[0], P[1], P[2])
-    sideways = ~(jnp.abs(det) * s2 * s2 > _MIN_FOCAL**2)
+    focal_zero = ~(jnp.abs(det) * s2 * s2 > _MIN_FOCAL**2)
     # the checks computed into memory first: else XLA computes them inside `jnp.select`'s
     # reduction, camera by camera (the checks and the decomposition of 4096 cameras: 0.31 against
     # 0.24 µs per camera)
-    nonfinite, few, singular, behind, poor, sideways = _small.materialised(jnp.stack([
+    nonfinite, few, singular, behind, poor, focal_zero = _small.materialised(jnp.stack([
         ~all_finite,
         n_visible < _validate.MIN_POINTS,
         ~(s_11 > rcond * norm),
@@ -691,10 +691,10 @@ def _camera(
         poor_fit(
             _rms(P, world, pixels, visible, depth), pixels, visible, max_relative_rms, compact
         ),
-        sideways,
+        focal_zero,
     ]))  # fmt: skip
-    # (a wild pixel's point may be sideways too: said POINTS_BEHIND or POOR_FIT, as before)
-    checks = [nonfinite, few, singular | (sideways & ~poor), behind, poor]
+    # (a wild pixel may also give a focal length ~0: said POINTS_BEHIND or POOR_FIT, as before)
+    checks = [nonfinite, few, singular | (focal_zero & ~poor), behind, poor]
     status = jnp.select(
         checks,
         [
