@@ -147,20 +147,38 @@ def first(tree, n: int, axis: int = -1):
 # quickly (`jit`): 16 programs' worth of the smallest (256 cameras of 64 points, 862 of 19).
 COMPACT = 16 * WORK
 
-# XLA's CPU backend compiling quickly: LLVM without optimisation, and the older fusion emitters
-# (a third of the newer ones' compile time). The compact DLT of 64 cameras of 64 points compiled
-# in 0.55 s against 4.95 s, and ran in the same 2.3 ms.
-_QUICK = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+# XLA's CPU backend: its older fusion emitters. They compile in 55-70 % of the newer MLIR
+# emitters' time and run about as fast: on this project's 2-core machine (interleaved in one
+# process), `calibrate` of 4096 cameras of 19 points compiled in 2.4-2.8 s against 3.7-4.5 s and
+# ran 8-11 % slower (4.0 against 3.7 ms), `refine` of 256 cameras of 108 points compiled in 2.4
+# s against 2.9 s and ran 5 % faster, `triangulate` of 100,000 points in 1.0 s against 1.9 s and
+# 3 % faster. (docs/performance.md has the figures, and the other way round on a Xeon.)
+_OPTIMISED = {"xla_cpu_use_fusion_emitters": False}
+
+# Compiling quickly, for small programs: LLVM without optimisation too. The compact DLT of 64
+# cameras of 64 points compiled in 0.55 s against 4.95 s fully optimised, and ran in the same
+# 2.3 ms.
+_QUICK = {**_OPTIMISED, "xla_backend_optimization_level": 0}
+
+
+def optimised_options() -> dict:
+    """The options of `_OPTIMISED` that this XLA knows, on a CPU; none elsewhere."""
+    return _known(tuple(_OPTIMISED.items()))
+
+
+def quick_options() -> dict:
+    """The options of `_QUICK` that this XLA knows, on a CPU; none elsewhere."""
+    return _known(tuple(_QUICK.items()))
 
 
 @functools.cache
-def quick_options() -> dict:
-    """The options of `_QUICK` that this XLA knows (an option it does not know is an error), on a
-    CPU; none elsewhere."""
+def _known(options: tuple) -> dict:
+    """The `(name, value)` pairs of `options` that this XLA knows (an option it does not know is
+    an error), on a CPU; none elsewhere."""
     if jax.default_backend() != "cpu":
         return {}
     known = {}
-    for name, value in _QUICK.items():
+    for name, value in options:
         try:
             jax.jit(lambda x: x + 1, compiler_options={**known, name: value}).lower(1.0).compile()
         except Exception:  # noqa: BLE001 (XLA's error for an unknown option has no type of its own)
@@ -170,28 +188,40 @@ def quick_options() -> dict:
 
 
 class jit:  # noqa: N801 (used as `jax.jit` is)
-    """`jit(fun, **kwargs)` (`jax.jit`, or `eqx.filter_jit` as `jit`) in two builds: fully
-    optimised, and, called with `quick=True`, compiled quickly (`quick_options`), for programs
-    small enough (`COMPACT`) that their compile time is all the user waits for. Inside the user's
-    traced code both are the same: the caller compiles the whole program."""
+    """`jit(fun, **kwargs)` (`jax.jit`, or `eqx.filter_jit` as `jit`) in two builds for calls from
+    Python: optimised (`optimised_options`), and, called with `quick=True`, compiled quickly
+    (`quick_options`), for programs small enough (`COMPACT`) that their compile time is all the
+    user waits for. Inside the user's traced code it is `jit(fun, **kwargs)`: the caller
+    compiles the whole program, with the caller's options."""
 
     def __init__(self, fun, *, jit=jax.jit, **kwargs):
         self._fun, self._jit, self._kwargs = fun, jit, kwargs
-        self.optimised = jit(fun, **kwargs)
+        self.traced = jit(fun, **kwargs)
         functools.update_wrapper(self, fun)
+
+    @functools.cached_property
+    def optimised(self):
+        return self._jit(self._fun, compiler_options=optimised_options(), **self._kwargs)
 
     @functools.cached_property
     def quick(self):
         return self._jit(self._fun, compiler_options=quick_options(), **self._kwargs)
 
     def __call__(self, *args, quick: bool = False, **kwargs):
-        quick = quick and _top_level()
+        if not _top_level():
+            return self.traced(*args, **kwargs)
         return (self.quick if quick else self.optimised)(*args, **kwargs)
+
+    def clear_cache(self):
+        """Forget every build's compiled programs (`jax.jit`'s `clear_cache`)."""
+        for build in ("traced", "optimised", "quick"):
+            if build in self.__dict__:
+                getattr(self.__dict__[build], "clear_cache", lambda: None)()
 
 
 def _top_level() -> bool:
     """Whether no JAX transformation is tracing: only a top-level `jax.jit` takes compiler
     options (JAX raises for a nested one). JAX has no public test of this; where its private one
-    is missing, every program is compiled fully optimised."""
+    is missing, every program is compiled with JAX's defaults."""
     clean = getattr(getattr(jax, "_src", None) and jax._src.core, "trace_state_clean", None)
     return bool(clean and clean())

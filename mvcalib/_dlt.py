@@ -724,7 +724,7 @@ def _chunk_size(n_cameras: int, n_points: int) -> int | None:
     return _sharding.cpu_chunk(n_cameras, max(CHUNK // n_points, 64))
 
 
-@jax.jit
+@_buckets.jit
 def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_RELATIVE_RMS):
     """The DLT of every camera for inputs that passed `_validate.correspondences`, by `_solve`.
 

@@ -26,7 +26,8 @@ jax.config.update("jax_disable_most_optimizations", not OPTIMISE)
 # notebook kernels inherit the answer). The two generate the same operations but may round
 # differently, and differently at different batch sizes; tests that compare programs to the
 # last bits, or rest on rounding, are marked `default_codegen` and run in a child process
-# compiled as users' programs are (`default_codegen_env`).
+# compiled as programs in users' own `jit` are (`default_codegen_env`; mvcalib's calls from
+# Python ask for the older emitters themselves: `mvcalib/_buckets.py`).
 LEGACY_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
 
 

@@ -252,7 +252,10 @@ def test_procrustes_inverts_a_rigid_transform(rvec, shift, log_size, seed):
 
 
 # ---------------------------------------------------------------------------- precision
-FLOAT32_PX = 2e-3  # px: measured worst case 2.4e-4 px over 240 random cameras at 0.5 px noise
+# px. Measured over 3000 random scenes of this strategy (all points visible): median 1.5e-4,
+# 99th percentile 8.4e-4, worst 1.95e-3 with XLA's default CPU emitters and 1.85e-3 with the
+# older ones mvcalib compiles with; hypothesis found 2.4e-3 (a 4000 px focal length).
+FLOAT32_PX = 3e-3
 
 
 @pytest.mark.default_codegen  # (rests on rounding: see conftest)
