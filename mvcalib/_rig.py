@@ -84,7 +84,8 @@ class RigCalibration(eqx.Module):
       wrong).
     - `initial`: `(C,)` the closed-form cameras that seeded the refinement.
     - `rms`: reprojection RMS over every observation used (pixels); `camera_rms` `(C,)`,
-      `frame_rms` `(F,)` the same per camera and per frame.
+      `frame_rms` `(F,)` the same per camera and per frame (a POOR_FIT camera's from the solve
+      that flagged it).
     - `residuals`: `(C, F, N, 2)` reprojected minus observed for every observation of a
       calibrated camera in a frame with a pose (`observed`, the skipped pairs' too), zero
       elsewhere; `used` `(C, F, N)` the observations that took part in the fit; `inliers` those
@@ -1050,9 +1051,11 @@ def calibrate_rig(
     Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
     which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
     is neither planar nor 3-D. Cameras that cannot be calibrated get a status and NaN; the
-    others are calibrated as if they were absent (except a POOR_FIT camera, flagged after the
-    solve it took part in: its free parameters absorb most of its own residuals, and a robust
-    `loss` keeps wrong detections from pulling the other cameras).
+    others are calibrated as if they were absent. A POOR_FIT camera is found by the solve it
+    took part in, where it pulled the others: called with concrete arrays, the rig is solved
+    again without it (by the same compiled program) until no camera is newly flagged; inside
+    `jax.jit` it is only flagged. (A robust `loss` keeps wrong detections of an otherwise good
+    camera from pulling the others.)
 
     **Example:**
 
@@ -1139,14 +1142,10 @@ def calibrate_rig(
             jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), cameras), skew, fix
         )
     # (fixed parameters not given hold the closed form's values: zero distortion, zero skew)
-    if isinstance(reference, str):
-        if reference != "target":
-            raise ValueError(f"`reference` is a camera index or 'target'; got {reference!r}.")
-        solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
-    else:
-        solve_reference = int(reference)
-        if not 0 <= solve_reference < C:
-            raise ValueError(f"`reference` {reference} is not a camera of the {C}.")
+    if isinstance(reference, str) and reference != "target":
+        raise ValueError(f"`reference` is a camera index or 'target'; got {reference!r}.")
+    if not isinstance(reference, str) and not 0 <= int(reference) < C:
+        raise ValueError(f"`reference` {reference} is not a camera of the {C}.")
     plane = (
         _plane_frame(target, np.ones(N, bool), dtype) if planar else RigidTransform.identity(dtype)
     )
@@ -1155,30 +1154,61 @@ def calibrate_rig(
         f"{C} cameras, {F} frames, {N} points ({'planar' if planar else '3-D'} target); "
         f"{int(np.sum(skipped)) if concrete else '?'} pairs skipped"
     )
-    out = _calibrate_rig(
-        jnp.asarray(target, dtype),
-        plane,
-        jnp.asarray(pixels, dtype),
-        jnp.asarray(mask),
-        jnp.asarray(observed),
-        cameras,
-        solve_reference,
-        rcond,
-        _dlt.check_relative_rms(max_relative_rms),
-        planar=planar,
-        given=cameras is not None,
-        free=free,
-        loss=loss,
-        max_steps=max_steps,
-        quick=C * F * N <= QUICK_SIZE,
-    )
-    result = RigCalibration(
-        skipped=jnp.asarray(skipped), parameter_names=tuple(names[i] for i in free), **out
-    )
-    if concrete and int(result.status[solve_reference]) != Status.OK:
-        raise ValueError(
-            f"the reference camera {solve_reference} cannot be calibrated: "
-            f"{Status(int(result.status[solve_reference])).message}. Choose another `reference`."
+
+    def solve(mask, observed):
+        # with reference="target", the solve's reference is the camera that saw the most frames
+        if not isinstance(reference, str):
+            solve_reference = int(reference)
+        else:
+            solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
+        out = _calibrate_rig(
+            jnp.asarray(target, dtype),
+            plane,
+            jnp.asarray(pixels, dtype),
+            jnp.asarray(mask),
+            jnp.asarray(observed),
+            cameras,
+            solve_reference,
+            rcond,
+            _dlt.check_relative_rms(max_relative_rms),
+            planar=planar,
+            given=cameras is not None,
+            free=free,
+            loss=loss,
+            max_steps=max_steps,
+            quick=C * F * N <= QUICK_SIZE,
+        )
+        result = RigCalibration(
+            skipped=jnp.asarray(skipped), parameter_names=tuple(names[i] for i in free), **out
+        )
+        if concrete and int(result.status[solve_reference]) != Status.OK:
+            raise ValueError(
+                f"the reference camera {solve_reference} cannot be calibrated: "
+                f"{Status(int(result.status[solve_reference])).message}. Choose another "
+                "`reference`."
+            )
+        return result
+
+    result = solve(mask, observed)
+    # Outside a trace, a POOR_FIT camera, which pulled the others in the solve it took part in,
+    # is left out and the rest solved again (by the same compiled program), until none is new.
+    dropped, dropped_rms = np.zeros(C, bool), np.full(C, np.nan)
+    while concrete and (poor := (np.asarray(result.status) == Status.POOR_FIT) & ~dropped).any():
+        rms = np.asarray(result.camera_rms)
+        say(
+            f"camera {', '.join(map(str, np.flatnonzero(poor)))}: poor fit (RMS "
+            f"{', '.join(f'{r:.3g}' for r in rms[poor])} px); solved again without it"
+        )
+        dropped, dropped_rms = dropped | poor, np.where(poor, rms, dropped_rms)
+        keep = ~dropped[:, None, None]
+        result = solve(mask & keep, observed & keep)
+        result = eqx.tree_at(
+            lambda r: (r.status, r.camera_rms),
+            result,
+            (
+                jnp.where(dropped, Status.POOR_FIT, result.status).astype(jnp.int32),
+                jnp.where(dropped, dropped_rms, result.camera_rms),
+            ),
         )
     say(
         f"RMS {float(result.rms):.3f} px after {int(result.iterations)} steps"
