@@ -163,28 +163,32 @@ _QUICK = {**_OPTIMISED, "xla_backend_optimization_level": 0}
 
 def optimised_options() -> dict:
     """The options of `_OPTIMISED` that this XLA knows, on a CPU; none elsewhere."""
-    return _known(tuple(_OPTIMISED.items()))
+    return {k: v for k, v in _OPTIMISED.items() if k in _known()}
 
 
 def quick_options() -> dict:
     """The options of `_QUICK` that this XLA knows, on a CPU; none elsewhere."""
-    return _known(tuple(_QUICK.items()))
+    return {k: v for k, v in _QUICK.items() if k in _known()}
 
 
 @functools.cache
-def _known(options: tuple) -> dict:
-    """The `(name, value)` pairs of `options` that this XLA knows (an option it does not know is
-    an error), on a CPU; none elsewhere."""
+def _known() -> frozenset:
+    """The names in `_QUICK` (which holds `_OPTIMISED`'s too) that this XLA knows as compiler
+    options, on a CPU; none elsewhere. An option it does not know is an error at compile time:
+    all are tried in one small program, and one by one only if that fails."""
     if jax.default_backend() != "cpu":
-        return {}
-    known = {}
-    for name, value in options:
+        return frozenset()
+
+    def compiles(options):
         try:
-            jax.jit(lambda x: x + 1, compiler_options={**known, name: value}).lower(1.0).compile()
+            jax.jit(lambda x: x + 1, compiler_options=options).lower(1.0).compile()
         except Exception:  # noqa: BLE001 (XLA's error for an unknown option has no type of its own)
-            continue
-        known[name] = value
-    return known
+            return False
+        return True
+
+    if compiles(_QUICK):
+        return frozenset(_QUICK)
+    return frozenset(name for name, value in _QUICK.items() if compiles({name: value}))
 
 
 class jit:  # noqa: N801 (used as `jax.jit` is)

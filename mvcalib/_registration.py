@@ -38,7 +38,10 @@ class RigidTransform(eqx.Module):
 
     @classmethod
     def identity(cls, dtype=float) -> RigidTransform:
-        return cls(jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype=dtype))
+        # (put from NumPy: `jnp.eye`, `jnp.zeros` and `jnp.asarray` of a NumPy array, called
+        # eagerly, compile a small program each)
+        dtype = jax.dtypes.canonicalize_dtype(dtype)
+        return cls(*jax.device_put((np.eye(3, dtype=dtype), np.zeros(3, dtype=dtype))))
 
     def apply(self, points: Float[Array, "*batch N 3"]) -> Float[Array, "*batch N 3"]:
         """`R X + t` for points `(..., N, 3)`."""

@@ -1162,11 +1162,11 @@ def calibrate_rig(
         else:
             solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
         out = _calibrate_rig(
-            jnp.asarray(target, dtype),
+            xp.asarray(target, dtype),  # (NumPy for concrete arrays: no program of its own)
             plane,
-            jnp.asarray(pixels, dtype),
-            jnp.asarray(mask),
-            jnp.asarray(observed),
+            xp.asarray(pixels, dtype),
+            mask,
+            observed,
             cameras,
             solve_reference,
             rcond,
@@ -1179,13 +1179,14 @@ def calibrate_rig(
             quick=C * F * N <= QUICK_SIZE,
         )
         result = RigCalibration(
-            skipped=jnp.asarray(skipped), parameter_names=tuple(names[i] for i in free), **out
+            skipped=jax.device_put(skipped) if concrete else skipped,
+            parameter_names=tuple(names[i] for i in free),
+            **out,
         )
-        if concrete and int(result.status[solve_reference]) != Status.OK:
+        if concrete and (status := int(np.asarray(result.status)[solve_reference])) != Status.OK:
             raise ValueError(
                 f"the reference camera {solve_reference} cannot be calibrated: "
-                f"{Status(int(result.status[solve_reference])).message}. Choose another "
-                "`reference`."
+                f"{Status(status).message}. Choose another `reference`."
             )
         return result
 
