@@ -212,11 +212,12 @@ def test_reference_target_puts_the_world_on_the_board():
     assert np.abs(np.asarray(result.target_poses.t[5])).max() < 1e-8
 
 
-def test_a_camera_whose_fit_fails_is_flagged_poor_fit_and_left_out():
+def test_a_camera_whose_fit_fails_is_flagged_poor_fit_and_left_out(capsys):
     rig = _rig(noise=0.3)
     pixels = np.asarray(rig.pixels).copy()
     pixels[2] += np.random.default_rng(0).normal(scale=60.0, size=pixels[2].shape)  # garbage
-    result = mc.calibrate_rig(rig.target, pixels, rig.mask)
+    result = mc.calibrate_rig(rig.target, pixels, rig.mask, verbose=True)
+    assert "camera 2: poor fit" in capsys.readouterr().err
     assert int(result.status[2]) == mc.Status.POOR_FIT
     assert np.isnan(np.asarray(result.cameras.alpha_u[2]))
     assert float(result.camera_rms[2]) > 30.0  # its RMS from the solve that flagged it
