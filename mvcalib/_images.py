@@ -90,7 +90,7 @@ class ImageCalibration:
 
     @property
     def ok(self) -> np.ndarray:
-        return np.asarray(self.calibration.ok)
+        return np.asarray(self.calibration.status) == Status.OK
 
     @property
     def pixels(self) -> np.ndarray:
@@ -189,7 +189,7 @@ def _misplaced(world, labels, far, calibrated):
     while True:
         last = calibrated(labels, far | off)
         pixels, used, calibration = last
-        cameras, ok = calibration.cameras, np.asarray(calibration.ok)
+        cameras, ok = calibration.cameras, np.asarray(calibration.status) == Status.OK
         seen, used = mask & ok[:, None], used & ok[:, None]
         points = np.asarray(triangulate(cameras, pixels, seen).points)
         predicted = np.asarray(cameras.project(world))
@@ -345,14 +345,14 @@ def calibrate_images(
             print(f"[{i + 1}/{len(images)}] {names[-1]}: {labels[-1].message}", file=sys.stderr)
 
     dtype = jnp.result_type(float)
-    world = jnp.asarray(target.points, dtype)
+    world = np.asarray(target.points, dtype)  # (NumPy in: `calibrate` pads it in NumPy anyway)
 
     def calibrated(labels, leave_out=False):
         """The labels' pixels, the dots used (labelled, not `leave_out`) and every view
         calibrated from them."""
         mask = _mask_of(labels) & ~np.asarray(leave_out)
         pixels = np.nan_to_num(np.stack([lab.pixels for lab in labels]))  # hidden: no influence
-        calibration = calibrate(world, jnp.asarray(pixels, dtype), jnp.asarray(mask), refine=refine)
+        calibration = calibrate(world, pixels.astype(dtype), mask, refine=refine)
         return pixels, mask, calibration
 
     pixels, mask, calibration = calibrated(labels)
@@ -363,7 +363,7 @@ def calibrate_images(
         check = len(pictures) >= 3
         options = dict(dark_dots=detect.get("dark_dots", True), beyond_gate=check, **look)
         cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
-        ok = np.asarray(calibration.ok)
+        ok = np.asarray(calibration.status) == Status.OK  # (in NumPy: no program of its own)
         far = np.zeros((len(labels), len(target.points)), bool)
         for i, picture in pictures.items():
             if ok[i] and labels[i].ok:
@@ -392,12 +392,13 @@ def calibrate_images(
         # current camera, remove it from the measured centroids, and calibrate again.
         bias = np.zeros_like(pixels)
         cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
-        for i in np.flatnonzero(np.asarray(calibration.ok)):
+        for i in np.flatnonzero(np.asarray(calibration.status) == Status.OK):
             bias[i] = ellipse_centres(cameras[i], target) - true_centres(cameras[i], target)
-        corrected = jnp.asarray(np.where(mask[..., None], pixels - bias, 0.0), dtype)
-        calibration = calibrate(world, corrected, jnp.asarray(mask), refine=refine)
-    unlabelled = jnp.asarray([not lab.ok for lab in labels])
-    status = jnp.where(unlabelled, jnp.int32(Status.NOT_LABELLED), calibration.status)
+        corrected = np.where(mask[..., None], pixels - bias, 0.0).astype(dtype)
+        calibration = calibrate(world, corrected, mask, refine=refine)
+    unlabelled = np.asarray([not lab.ok for lab in labels])
+    status = np.where(unlabelled, Status.NOT_LABELLED, np.asarray(calibration.status))
+    status = jax.device_put(status.astype(np.int32))  # (from NumPy: no program of its own)
     calibration = eqx.tree_at(lambda c: c.status, calibration, status)
     result = ImageCalibration(
         calibration=calibration,

@@ -93,10 +93,10 @@ def _fit(world, pixels, mask, max_relative_rms=_dlt.DEFAULT_MAX_RELATIVE_RMS) ->
     """One camera's P `(3, 4)` by mvcalib's DLT on the visible dots; NaN if it fails (with
     `max_relative_rms`, also if it fits them that poorly: `_dlt.poor_fit`)."""
     dtype = jnp.result_type(float)  # float64 where the user enabled x64
-    P, *_ = _dlt.solve_validated(
-        jnp.asarray(world, dtype),
-        jnp.asarray(pixels, dtype),
-        jnp.asarray(mask),
+    P, *_ = _dlt.solve_validated(  # (NumPy in: `jnp.asarray` would compile a program a shape)
+        np.asarray(world, dtype),
+        np.asarray(pixels, dtype),
+        np.asarray(mask),
         _dlt.default_rcond(dtype),
         max_relative_rms,
     )

@@ -104,9 +104,8 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
 
     ```
     """
-    rig = (
-        jax.tree_util.tree_map(lambda a: a[None], cameras) if cameras.batch_shape == () else cameras
-    )
+    rig = jax.tree_util.tree_map(np.asarray, cameras)  # (in NumPy: no program per index)
+    rig = jax.tree_util.tree_map(lambda a: a[None], rig) if rig.batch_shape == () else rig
     if len(rig.batch_shape) != 1:
         raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
     n = rig.batch_shape[0]
