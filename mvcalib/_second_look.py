@@ -122,7 +122,7 @@ def _fit(
 ):
     """Fit `clip(background + plane + a * template(x - c))` around `predicted`: a dict with the
     centre and the acceptance measures, or None where the window leaves the image."""
-    from scipy.ndimage import map_coordinates
+    from scipy.ndimage import map_coordinates, spline_filter
     from scipy.optimize import least_squares
 
     half = int(np.ceil(_WINDOW * radius)) + 2
@@ -140,11 +140,17 @@ def _fit(
     above = (data - base)[outer]
     noise = max(1.4826 * float(np.median(np.abs(above - np.median(above)))), 1e-3)
 
-    def sample(image, p, order=3):
-        return map_coordinates(image, _coords(p, xx, yy, s), order=order, mode="constant")
+    # The cubic B-spline coefficients of the template and its gradients, once: what
+    # `map_coordinates` computes on every call with its default `prefilter` (the same numbers)
+    images = {"template": template, "u": Tu, "v": Tv}
+    spline = {k: spline_filter(a, 3, output=np.float64, mode="constant") for k, a in images.items()}
+
+    def sample(name, p):
+        coordinates = _coords(p, xx, yy, s)
+        return map_coordinates(spline[name], coordinates, order=3, mode="constant", prefilter=False)
 
     def model(p):
-        return base + p[2] + p[3] * X + p[4] * Y + p[5] * sample(template, p)
+        return base + p[2] + p[3] * X + p[4] * Y + p[5] * sample("template", p)
 
     def residuals(p):
         return (np.clip(model(p), 0.0, saturation) - data).ravel()
@@ -152,9 +158,9 @@ def _fit(
     def jacobian(p):
         m = model(p)
         live = ((m > 0.0) & (m < saturation)).ravel()  # a clipped pixel does not move
-        t = sample(template, p).ravel()
-        gu = p[5] * sample(Tu, p).ravel() / _STEP  # d model / d (template x, y)
-        gv = p[5] * sample(Tv, p).ravel() / _STEP
+        t = sample("template", p).ravel()
+        gu = p[5] * sample("u", p).ravel() / _STEP  # d model / d (template x, y)
+        gv = p[5] * sample("v", p).ravel() / _STEP
         columns = [None, None, np.ones_like(t), X.ravel(), Y.ravel(), t]
         A = np.eye(2) + (p[6:10].reshape(2, 2) if len(p) > 6 else 0.0)
         columns[0] = -(A[0, 0] * gu + A[1, 0] * gv)
@@ -166,7 +172,7 @@ def _fit(
 
     b0 = float(np.median(above))
     if min_amplitude is not None:  # no dot at all here (hidden): the linear fit at the prediction
-        t = sample(template, np.array([*predicted, 0.0, 0.0, 0.0, 1.0])).ravel()
+        t = sample("template", np.array([*predicted, 0.0, 0.0, 0.0, 1.0])).ravel()
         A = np.stack([np.ones_like(t), X.ravel(), Y.ravel(), t], axis=1)
         a = np.linalg.lstsq(A, (data - base).ravel(), rcond=None)[0][3]
         if not a >= min_amplitude:
@@ -184,7 +190,8 @@ def _fit(
     )  # fmt: skip
     p = fitted.x
     residual = residuals(p).reshape(data.shape)
-    footprint = sample(template, p, order=1) > 0.2 * template.max()
+    linear = map_coordinates(template, _coords(p, xx, yy, s), order=1, mode="constant")
+    footprint = linear > 0.2 * template.max()
     contrast = p[5] * template.max()
     if not footprint.any() or not contrast > 0:
         return None
