@@ -4,6 +4,7 @@ distortion, or a fisheye with Kannala–Brandt's (equidistant) model."""
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -28,8 +29,8 @@ def _projection(camera: Camera, world):
 
 # Called on concrete arrays, the projection's dozen operations would run one by one, each
 # compiled at its first shape (~0.5 s for the first call); as one program it compiles once
-# (~0.1 s) and runs ~8x faster.
-_compiled_projection = eqx.filter_jit(_projection)
+# (~0.1 s) and runs ~8x faster; a small one (`_buckets.COMPACT` points) in the quick build.
+_compiled_projection = _buckets.jit(_projection, jit=eqx.filter_jit)
 
 
 def lens_of(dist) -> str:
@@ -191,7 +192,9 @@ class Camera(eqx.Module):
         xp = jnp if isinstance(world, jax.Array) else np  # (NumPy data: converted by the jit)
         world = _validate.floating("world", world, (None, 3), xp=xp)
         if _buckets.applies(self, world):  # concrete arrays: one compiled program
-            return _compiled_projection(self, world)
+            batch = np.broadcast_shapes(self.batch_shape, world.shape[:-2])
+            quick = math.prod(batch) * world.shape[-2] <= _buckets.COMPACT
+            return _compiled_projection(self, world, quick=quick)
         return _projection(self, world)  # (traced: part of the caller's program)
 
     def rays(self, pixels, *, iterations: int = 20) -> Float[Array, "*batch N 3"]:

@@ -799,7 +799,11 @@ def solve(
     """Validated DLT returning `(P, status, condition, mirrored)`; see `dlt`."""
     world, pixels, mask = _validate.correspondences(world, pixels, mask)
     rcond = default_rcond(world.dtype) if rcond is None else float(rcond)
-    return solve_validated(world, pixels, mask, rcond, check_relative_rms(max_relative_rms))
+    batch = jnp.broadcast_shapes(world.shape[:-2], pixels.shape[:-2], mask.shape[:-1])
+    quick = compact(math.prod(batch), pixels.shape[-2])  # a small program, compiled quickly
+    return solve_validated(
+        world, pixels, mask, rcond, check_relative_rms(max_relative_rms), quick=quick
+    )
 
 
 def dlt(

@@ -99,6 +99,7 @@ def _fit(world, pixels, mask, max_relative_rms=_dlt.DEFAULT_MAX_RELATIVE_RMS) ->
         np.asarray(mask),
         _dlt.default_rcond(dtype),
         max_relative_rms,
+        quick=_dlt.compact(1, len(world)),  # a small program, compiled quickly (`_buckets.jit`)
     )
     return np.asarray(P, dtype=np.float64)
 
