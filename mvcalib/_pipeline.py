@@ -55,7 +55,7 @@ class Calibration(eqx.Module):
 
     @property
     def ok(self) -> Bool[Array, "*batch"]:
-        return self.status == Status.OK
+        return _validate.derived(lambda xp, s: s == Status.OK, self.status)
 
     def messages(self) -> list[str]:
         """One line per camera (flattened), saying whether and why it failed."""

@@ -121,20 +121,23 @@ class RigCalibration(eqx.Module):
 
     @property
     def ok(self) -> Bool[Array, " C"]:
-        return self.status == Status.OK
+        return _validate.derived(lambda xp, s: s == Status.OK, self.status)
 
     @property
     def converged(self) -> Bool[Array, ""]:
-        return self.result == 0
+        return _validate.derived(lambda xp, r: r == 0, self.result)
 
     @property
     def rms_observed(self) -> Float[Array, ""]:
-        square = jnp.sum(self.residuals**2, -1)
-        return jnp.sqrt(jnp.sum(square) / jnp.maximum(jnp.sum(self.observed), 1))
+        def rms(xp, residuals, observed):
+            square = xp.sum(residuals**2, -1)
+            return xp.sqrt(xp.sum(square) / xp.maximum(xp.sum(observed), 1))
+
+        return _validate.derived(rms, self.residuals, self.observed)
 
     @property
     def n_skipped(self) -> Int[Array, ""]:
-        return jnp.sum(self.skipped)
+        return _validate.derived(lambda xp, s: xp.sum(s), self.skipped)
 
     def messages(self) -> list[str]:
         """One line per camera: its status's message."""

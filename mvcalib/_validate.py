@@ -18,6 +18,17 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+def derived(fn, *arrays):
+    """`fn(xp, *arrays)` for a small quantity derived from a result's arrays: in NumPy, put on
+    the device, when they are concrete and on one device (each eager `jnp` operation compiles a
+    program of its own for every new shape, 10-30 ms each); in `jnp` inside a trace or for
+    arrays split over devices."""
+    one = lambda a: not isinstance(a, jax.Array) or len(a.sharding.device_set) == 1  # noqa: E731
+    if is_concrete(*arrays) and all(one(a) for a in arrays):
+        return jax.device_put(fn(np, *(np.asarray(a) for a in arrays)))
+    return fn(jnp, *arrays)
+
+
 def result_dtype(*dtypes) -> np.dtype:
     """The floating dtype arrays of `dtypes` are computed in: their NumPy promotion, as JAX holds
     it (float32 unless the user enabled x64). `jnp.result_type` gives the same, but warns about
