@@ -407,7 +407,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
 def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
     names = parameter_names(lens)
     free = {names[i] for i in _free_parameters(distortion, fix, skew, lens)}
-    mask = lambda names: jnp.asarray([n in free for n in names], dtype)  # noqa: E731
+    mask = lambda names: np.asarray([n in free for n in names], dtype)  # noqa: E731
     return mask(tuple(n for n in names if n not in POSE)), mask(POSE)
 
 
@@ -447,7 +447,7 @@ def _plane_frame(world: np.ndarray, used: np.ndarray, dtype) -> RigidTransform:
         return RigidTransform.identity(dtype)
     A = vt.copy()
     A[2] = np.cross(A[0], A[1])  # a proper rotation
-    return RigidTransform(jnp.asarray(A, dtype), jnp.asarray(-A @ c, dtype))
+    return RigidTransform(*jax.device_put((A.astype(dtype), (-A @ c).astype(dtype))))
 
 
 def _check_views(pixels, mask, skew: bool):
@@ -557,22 +557,24 @@ def calibrate_planar(
 
     ```
     """
-    world = _validate.floating("world", world)
+    # concrete arrays are checked in NumPy (an eager `jnp` operation compiles a program a shape)
+    xp = np if _validate.is_concrete(world, pixels, mask) else jnp
+    world = _validate.floating("world", world, xp=xp)
     if world.ndim != 2 or world.shape[-1] not in (2, 3):
         raise ValueError(
             "`world` holds the planar target's points shared by every view, shape (N, 2) or "
             f"(N, 3); got {tuple(world.shape)}."
         )
     if world.shape[-1] == 2:
-        world = jnp.concatenate([world, jnp.zeros_like(world[:, :1])], -1)
-    pixels = _validate.floating("pixels", pixels, (None, 2))
+        world = xp.concatenate([world, xp.zeros_like(world[:, :1])], -1)
+    pixels = _validate.floating("pixels", pixels, (None, 2), xp=xp)
     if pixels.ndim != 3:
         raise ValueError(
             f"`pixels` must be (V, N, 2): the target's N points in each of V views; got "
             f"{tuple(pixels.shape)}."
         )
     world, pixels, mask = _validate.correspondences(
-        world, pixels, mask, min_points=MIN_PLANE_POINTS
+        world, pixels, mask, min_points=MIN_PLANE_POINTS, xp=xp
     )
     _check_views(pixels, mask, skew)
     if lens not in LENSES:
@@ -594,7 +596,7 @@ def calibrate_planar(
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
     free_shared, free_pose = _free_masks(distortion, fix, skew, dtype, lens)  # checks the names
-    skew = jnp.asarray(bool(skew))
+    skew = np.asarray(bool(skew))
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
     if lens == "fisheye":
         H, seed, status, condition = _fisheye_seed(world, plane, pixels, mask, image_size, rcond)
@@ -603,7 +605,7 @@ def calibrate_planar(
         H, seed, status, condition = _closed_form(
             world, plane, pixels, mask, skew, rcond, quick=quick
         )
-    ok = status == Status.OK
+    ok = _validate.derived(lambda xp, s: s == Status.OK, status)
     if refine:
         solver = default_solver(dtype) if solver is None else solver
         camera, iterations, result = _refine_views(
@@ -611,7 +613,7 @@ def calibrate_planar(
             quick=quick,
         )  # fmt: skip
     else:
-        iterations = result = jnp.zeros((), jnp.int32)
+        iterations = result = np.zeros((), np.int32)
     closed, camera, report, rms = _finish(
         seed, camera if refine else seed, world, pixels, mask, ok, quick=quick
     )
@@ -624,6 +626,6 @@ def calibrate_planar(
         rms=rms,
         status=status,
         condition=condition,
-        iterations=jnp.asarray(iterations, jnp.int32),
-        result=jnp.asarray(result, jnp.int32),
+        iterations=_validate.derived(lambda xp, i: i.astype(xp.int32), iterations),
+        result=_validate.derived(lambda xp, r: r.astype(xp.int32), result),
     )
