@@ -164,7 +164,8 @@ def load_json(path) -> tuple[Camera, list[str]]:
         raise ValueError(f"{where} is malformed ({error}).") from None
     names = [str(e.get("name", f"cam_{i}")) for i, e in enumerate(cameras)]
     lens = _one_lens(path, lenses, names)
-    stacked = {k: jnp.asarray(np.stack(v)) for k, v in fields.items()}
+    # (put on the device from NumPy: `jnp.asarray` of float64 with x64 off compiles a program)
+    stacked = {k: jax.device_put(np.stack(v)) for k, v in fields.items()}
     return Camera(**stacked, lens=lens), names
 
 
