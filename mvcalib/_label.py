@@ -92,16 +92,14 @@ class Labels:
 def _fit(world, pixels, mask, max_relative_rms=_dlt.DEFAULT_MAX_RELATIVE_RMS) -> np.ndarray:
     """One camera's P `(3, 4)` by mvcalib's DLT on the visible dots; NaN if it fails (with
     `max_relative_rms`, also if it fits them that poorly: `_dlt.poor_fit`)."""
+    from ._pipeline import calibrate
+
+    # `calibrate`'s program of the rig's shape bucket: the one the photos' calibration runs
+    # afterwards, so that labelling compiles no DLT of its own
     dtype = jnp.result_type(float)  # float64 where the user enabled x64
-    P, *_ = _dlt.solve_validated(  # (NumPy in: `jnp.asarray` would compile a program a shape)
-        np.asarray(world, dtype),
-        np.asarray(pixels, dtype),
-        np.asarray(mask),
-        _dlt.default_rcond(dtype),
-        max_relative_rms,
-        quick=_dlt.compact(1, len(world)),  # a small program, compiled quickly (`_buckets.jit`)
-    )
-    return np.asarray(P, dtype=np.float64)
+    world, pixels = np.asarray(world, dtype), np.asarray(pixels, dtype)
+    result = calibrate(world, pixels, np.asarray(mask), max_relative_rms=max_relative_rms)
+    return np.asarray(result.P, dtype=np.float64)
 
 
 def _normalise(points):
