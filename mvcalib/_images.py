@@ -90,7 +90,7 @@ class ImageCalibration:
 
     @property
     def ok(self) -> np.ndarray:
-        return np.asarray(self.calibration.status) == Status.OK
+        return np.asarray(self.calibration.ok)
 
     @property
     def pixels(self) -> np.ndarray:
@@ -189,7 +189,7 @@ def _misplaced(world, labels, far, calibrated):
     while True:
         last = calibrated(labels, far | off)
         pixels, used, calibration = last
-        cameras, ok = calibration.cameras, np.asarray(calibration.status) == Status.OK
+        cameras, ok = calibration.cameras, np.asarray(calibration.ok)
         seen, used = mask & ok[:, None], used & ok[:, None]
         points = np.asarray(triangulate(cameras, pixels, seen).points)
         predicted = np.asarray(cameras.project(world))
@@ -363,7 +363,7 @@ def calibrate_images(
         check = len(pictures) >= 3
         options = dict(dark_dots=detect.get("dark_dots", True), beyond_gate=check, **look)
         cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
-        ok = np.asarray(calibration.status) == Status.OK  # (in NumPy: no program of its own)
+        ok = np.asarray(calibration.ok)
         far = np.zeros((len(labels), len(target.points)), bool)
         for i, picture in pictures.items():
             if ok[i] and labels[i].ok:
@@ -392,7 +392,7 @@ def calibrate_images(
         # current camera, remove it from the measured centroids, and calibrate again.
         bias = np.zeros_like(pixels)
         cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
-        for i in np.flatnonzero(np.asarray(calibration.status) == Status.OK):
+        for i in np.flatnonzero(np.asarray(calibration.ok)):
             bias[i] = ellipse_centres(cameras[i], target) - true_centres(cameras[i], target)
         corrected = np.where(mask[..., None], pixels - bias, 0.0).astype(dtype)
         calibration = calibrate(world, corrected, mask, refine=refine)

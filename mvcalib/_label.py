@@ -30,6 +30,7 @@ import numpy as np
 
 from . import _dlt
 from ._detect import Detection
+from ._pipeline import calibrate
 from .targets import Target
 
 __all__ = ["Labels", "label_dots"]
@@ -92,8 +93,6 @@ class Labels:
 def _fit(world, pixels, mask, max_relative_rms=_dlt.DEFAULT_MAX_RELATIVE_RMS) -> np.ndarray:
     """One camera's P `(3, 4)` by mvcalib's DLT on the visible dots; NaN if it fails (with
     `max_relative_rms`, also if it fits them that poorly: `_dlt.poor_fit`)."""
-    from ._pipeline import calibrate
-
     # `calibrate`'s program of the rig's shape bucket: the one the photos' calibration runs
     # afterwards, so that labelling compiles no DLT of its own
     dtype = jnp.result_type(float)  # float64 where the user enabled x64

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _buckets, _dlt, _validate
+from . import _buckets, _dlt, _status, _validate
 from ._camera import Camera
 from ._report import ReprojectionReport, compute_report, format_table, masked_rms
 from ._status import Status
@@ -55,7 +55,7 @@ class Calibration(eqx.Module):
 
     @property
     def ok(self) -> Bool[Array, "*batch"]:
-        return _validate.derived(lambda xp, s: s == Status.OK, self.status)
+        return _status.ok(self.status)
 
     def messages(self) -> list[str]:
         """One line per camera (flattened), saying whether and why it failed."""

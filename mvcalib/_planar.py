@@ -15,7 +15,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _buckets, _validate
+from . import _buckets, _status, _validate
 from ._camera import LENSES, Camera, lens_of
 from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
@@ -605,7 +605,7 @@ def calibrate_planar(
         H, seed, status, condition = _closed_form(
             world, plane, pixels, mask, skew, rcond, quick=quick
         )
-    ok = _validate.derived(lambda xp, s: s == Status.OK, status)
+    ok = _status.ok(status)
     if refine:
         solver = default_solver(dtype) if solver is None else solver
         camera, iterations, result = _refine_views(

@@ -29,7 +29,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _buckets, _dlt, _small, _validate
+from . import _buckets, _dlt, _small, _status, _validate
 from ._camera import (
     Camera,
     _lens,
@@ -121,7 +121,7 @@ class RigCalibration(eqx.Module):
 
     @property
     def ok(self) -> Bool[Array, " C"]:
-        return _validate.derived(lambda xp, s: s == Status.OK, self.status)
+        return _status.ok(self.status)
 
     @property
     def converged(self) -> Bool[Array, ""]:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import enum
 
+from ._validate import derived
+
 
 class Status(enum.IntEnum):
     """Why a camera of a batch was or was not calibrated. `int(status) == 0` means success.
@@ -50,3 +52,9 @@ _MESSAGES = {
         "(see the per-image message of `calibrate_images`)"
     ),
 }
+
+
+def ok(status):
+    """`status == Status.OK`, computed in NumPy where `status` is concrete (`_validate.derived`:
+    no program of its own)."""
+    return derived(lambda xp, s: s == Status.OK, status)
