@@ -18,10 +18,15 @@ camera without a seed, whose problem ends at once. The padding is done on the ho
 a CPU that is the arrays' own memory), so that a new shape compiles nothing but the bucket's
 program. Inside the user's traced code, shapes are theirs: padding would only add work to
 the program they compile anyway.
+
+Programs are compiled by `jit` (in a build that compiles quickly when small) and, where a call
+runs several one after the other, on other threads at the same time (`ahead`).
 """
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextvars
 import functools
 import math
 
@@ -196,11 +201,15 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
     Python: optimised (`optimised_options`), and, called with `quick=True`, compiled quickly
     (`quick_options`), for programs small enough (`COMPACT`) that their compile time is all the
     user waits for. Inside the user's traced code it is `jit(fun, **kwargs)`: the caller
-    compiles the whole program, with the caller's options."""
+    compiles the whole program, with the caller's options. Under `ahead`, a call lowers its
+    program and has it compiled on a second thread; a later call waits for that compile rather
+    than compiling the program again."""
 
     def __init__(self, fun, *, jit=jax.jit, **kwargs):
         self._fun, self._jit, self._kwargs = fun, jit, kwargs
         self.traced = jit(fun, **kwargs)
+        self._compiling: list[concurrent.futures.Future] = []
+        self._seen: set = set()  # the signatures of the calls from Python so far
         functools.update_wrapper(self, fun)
 
     @functools.cached_property
@@ -214,13 +223,94 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
     def __call__(self, *args, quick: bool = False, **kwargs):
         if not _top_level():
             return self.traced(*args, **kwargs)
-        return (self.quick if quick else self.optimised)(*args, **kwargs)
+        build = self.quick if quick else self.optimised
+        signature = _signature(quick, args, kwargs)
+        if _AHEAD.get():
+            if signature not in self._seen or not _holds_programs(build):  # (else compiled)
+                lowered = build.lower(*args, **kwargs)
+                self._compiling.append(_compiler().submit(lowered.compile))
+                self._seen.add(signature)
+            raise _Lowered
+        self._wait()
+        out = build(*args, **kwargs)
+        self._seen.add(signature)
+        return out
+
+    def _wait(self):
+        """Wait for the compiles `ahead` started (JAX keeps what they compiled: the call that
+        follows finds it; one that failed is compiled again by that call, which reports why)."""
+        if self._compiling:
+            concurrent.futures.wait(self._compiling)
+            self._compiling.clear()
 
     def clear_cache(self):
         """Forget every build's compiled programs (`jax.jit`'s `clear_cache`)."""
+        self._wait()
+        self._seen.clear()
         for build in ("traced", "optimised", "quick"):
             if build in self.__dict__:
                 getattr(self.__dict__[build], "clear_cache", lambda: None)()
+
+
+def _signature(*tree):
+    """What tells compiled programs apart, roughly: the tree's structure, its arrays' shapes and
+    types, its other leaves (hashable or not: by identity). Equal signatures can still need two
+    programs (say, arrays on other devices): a signature serves only to skip work (`ahead`)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+
+    def key(x):
+        if isinstance(x, (np.ndarray, jax.Array, np.generic)):
+            return (x.shape, x.dtype, getattr(x, "weak_type", False))
+        try:
+            hash(x)
+        except TypeError:
+            return id(x)
+        return x
+
+    return treedef, tuple(map(key, leaves))
+
+
+def _holds_programs(build) -> bool:
+    """Whether a `jax.jit` (or `eqx.filter_jit`) holds compiled programs: none after
+    `jax.clear_caches()`. JAX's cache size is private; where it is missing, assume it does."""
+    size = getattr(getattr(build, "_cached", build), "_cache_size", None)
+    return size is None or size() > 0
+
+
+# ------------------------------------------------------------------------------ compiling ahead
+# XLA compiles without holding Python's lock, on one core: a program that a call will need can
+# be compiled on a second thread while Python traces the next one (or XLA compiles it).
+_AHEAD = contextvars.ContextVar("mvcalib_ahead", default=False)
+
+
+class _Lowered(BaseException):
+    """Raised by a `jit` called under `ahead`, once its program is lowered (a `BaseException`,
+    which no `except Exception` on the way out stops)."""
+
+
+@functools.cache
+def _compiler() -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="mvcalib-compile")
+
+
+def ahead(fun, /, *args, **kwargs) -> None:
+    """Start compiling the program that `fun(*args, **kwargs)` would call first (a `jit`'s), and
+    return as soon as it is lowered: `fun` runs up to that call (its checks and padding, in
+    NumPy) and no further, and XLA compiles the program on a second thread while the caller goes
+    on. Call `fun` later with arguments of the same shapes and types: its call of the program
+    waits for that compile instead of compiling again.
+
+    Only a hint: inside a trace, or if `fun` fails before its first program, nothing is
+    started (a real call would raise the same error)."""
+    if not _top_level():
+        return
+    token = _AHEAD.set(True)
+    try:
+        fun(*args, **kwargs)
+    except (_Lowered, Exception):  # noqa: BLE001, S110 (an error: the real call will raise it)
+        pass
+    finally:
+        _AHEAD.reset(token)
 
 
 def _top_level() -> bool:

@@ -151,6 +151,8 @@ def calibrate(
         n_points = pixels.shape[-2]
         (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
         quick = _dlt.compact(*mask.shape)
+        if options is not None:  # the refinement compiles on a second thread meanwhile
+            _buckets.ahead(_refine_padded, _seed_like(pixels, skew), world, pixels, mask, options)
         result = _calibrate(world, pixels, mask, quick=quick, **settings)
         if options is not None:
             result = _refined_bucket(
@@ -197,7 +199,6 @@ def _refined_bucket(
     """`_refined` of a rig padded to its bucket, as the same compiled programs that `calibrate`
     and `refine` called one after the other run: the same cameras to the last bit. The seed is
     made in NumPy, the padding's cameras NaN (their problems end at once)."""
-    from . import _refine  # Optimistix and Lineax are imported only when refining
 
     def padding_nan(x):
         x = np.array(x)
@@ -205,8 +206,27 @@ def _refined_bucket(
         return x
 
     seed = jax.tree_util.tree_map(padding_nan, result.cameras)
-    refined = _refine.refine(seed, world, pixels, mask, **options)  # (already a bucket)
+    refined = _refine_padded(seed, world, pixels, mask, options)
     return _checked(result, refined, world, pixels, mask, max_relative_rms, quick=quick)
+
+
+def _refine_padded(seed, world, pixels, mask, options):
+    """`refine` of a rig already padded to its bucket."""
+    from . import _refine  # Optimistix and Lineax are imported only when refining
+
+    return _refine.refine(seed, world, pixels, mask, **options)
+
+
+def _seed_like(pixels, skew: bool) -> Camera:
+    """NaN cameras (NumPy) of the type, shape and dtype of `_calibrate`'s for these pixels."""
+    shapes = _cameras_shape(pixels.shape[:-2], np.dtype(pixels.dtype), skew)
+    return jax.tree_util.tree_map(lambda x: np.full(x.shape, np.nan, x.dtype), shapes)
+
+
+@functools.cache
+def _cameras_shape(batch: tuple, dtype, skew: bool):
+    P = jax.ShapeDtypeStruct(batch + (3, 4), dtype)
+    return jax.eval_shape(functools.partial(Camera.from_projection, skew=skew), P)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)

@@ -859,26 +859,15 @@ def _uncertainty(y, args, n: _Normal, free):
     )
 
 
+# Two programs, the rig's start and its joint solve, so that XLA compiles each on a thread of its
+# own while Python traces the second (`_buckets.ahead`): XLA compiles on one core and without
+# Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s as one
+# program, 2.6-3.0 s as two.
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _calibrate_rig(
-    target,
-    plane,
-    pixels,
-    mask,
-    observed,
-    cameras,
-    reference,
-    rcond,
-    max_relative_rms,
-    *,
-    planar,
-    given,
-    free,
-    loss,
-    max_steps,
-):
-    pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
-    initial, frames, pair, frame_ok, status, distance = jax.lax.stop_gradient(
+def _start(target, plane, pixels, mask, cameras, reference, rcond, *, planar, given, free, loss,
+           max_steps):  # fmt: skip
+    """`_initialise`, compiled: the rig before the joint solve (no derivatives flow through it)."""
+    return jax.lax.stop_gradient(
         _initialise(
             target,
             plane,
@@ -894,6 +883,37 @@ def _calibrate_rig(
             max_steps=max_steps,
         )
     )
+
+
+def _start_like(C: int, F: int, dtype, lens: str) -> tuple:
+    """Zeros (NumPy) of the types and shapes `_start` returns for C cameras and F frames: the
+    joint solve's program can be compiled before the start is known."""
+    camera = _camera_shape(np.dtype(dtype), lens)
+    like = lambda tree, n: jax.tree_util.tree_map(  # noqa: E731
+        lambda x: np.zeros((n,) + x.shape, x.dtype), tree
+    )
+    frames = like(RigidTransform.identity(dtype), F)
+    return (
+        like(camera, C),
+        frames,
+        np.zeros((C, F), bool),
+        np.zeros(F, bool),
+        np.zeros(C, np.int32),
+        np.zeros((), dtype),
+    )
+
+
+@functools.cache
+def _camera_shape(dtype, lens: str):
+    return jax.eval_shape(functools.partial(unit_camera, dtype, lens))
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relative_rms, *, free,
+                   loss, max_steps):  # fmt: skip
+    """The joint solve from `_start`'s rig, its uncertainty and report."""
+    pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
+    initial, frames, pair, frame_ok, status, distance = start
     C = pair.shape[0]
     ok = status == Status.OK
     # what may move: the free parameters of calibrated cameras, not the reference's pose
@@ -1164,23 +1184,23 @@ def calibrate_rig(
             solve_reference = int(reference)
         else:
             solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
-        out = _calibrate_rig(
-            xp.asarray(target, dtype),  # (NumPy for concrete arrays: no program of its own)
-            plane,
-            xp.asarray(pixels, dtype),
-            mask,
-            observed,
-            cameras,
-            solve_reference,
-            rcond,
-            _dlt.check_relative_rms(max_relative_rms),
-            planar=planar,
-            given=cameras is not None,
-            free=free,
-            loss=loss,
-            max_steps=max_steps,
-            quick=C * F * N <= QUICK_SIZE,
-        )
+        # (NumPy for concrete arrays: no program of their own)
+        points, image = xp.asarray(target, dtype), xp.asarray(pixels, dtype)
+        quick = C * F * N <= QUICK_SIZE
+        options = dict(free=free, loss=loss, max_steps=max_steps, quick=quick)
+        start = functools.partial(
+            _start, points, plane, image, mask, cameras, solve_reference, rcond,
+            planar=planar, given=cameras is not None, **options,
+        )  # fmt: skip
+        joint = functools.partial(
+            _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
+            reference=solve_reference, max_relative_rms=_dlt.check_relative_rms(max_relative_rms),
+            **options,
+        )  # fmt: skip
+        if concrete:  # both programs compile on other threads, the second traced meanwhile
+            _buckets.ahead(start)
+            _buckets.ahead(joint, _start_like(C, F, dtype, lens))
+        out = joint(start())
         result = RigCalibration(
             skipped=jax.device_put(skipped) if concrete else skipped,
             parameter_names=tuple(names[i] for i in free),

@@ -114,3 +114,66 @@ def test_compact_dlt_equals_the_written_out_one(noise):
         # origin, in this test alone in one process, at 18378f3 too), exact
         assert np.all(np.asarray(condition)[ok] >= np.asarray(condition0)[ok] * (1 - 1e-9))
         assert np.all(np.asarray(condition)[ok] <= np.asarray(condition0)[ok] * 1.25)
+
+
+# ------------------------------------------------------------------------------ compiling ahead
+def _compiled_on(caplog, name):
+    """The threads on which XLA compiled the program `name`, one entry per compile (at DEBUG
+    level off the main thread: `jax.log_compiles()` holds for the thread that enters it)."""
+    done = f"Finished XLA compilation of jit({name})"
+    return [r.threadName for r in caplog.records if done in r.getMessage()]
+
+
+def test_refinement_compiles_once_on_a_second_thread(caplog):
+    """`calibrate(..., refine=True)` has XLA compile the refinement while it compiles and runs
+    the DLT: once, on another thread, and the answer is the traced call's."""
+    world, pixels, mask = _rig(3, 6, 25)
+    jax.clear_caches()
+    with caplog.at_level(logging.DEBUG), jax.log_compiles():
+        result = mc.calibrate(world, pixels, mask, refine=True)
+        again = mc.calibrate(world, pixels, mask, refine=True)
+    assert _compiled_on(caplog, "_calibrate") == ["MainThread"]
+    threads = _compiled_on(caplog, "_refine_all")
+    assert len(threads) == 1 and threads[0].startswith("mvcalib-compile"), threads
+    np.testing.assert_array_equal(result.cameras.R, again.cameras.R)
+    alone = jax.jit(functools.partial(mc.calibrate, refine=True))(world, pixels, mask)
+    np.testing.assert_allclose(result.report.rms, alone.report.rms, rtol=1e-9)
+
+
+def test_rig_compiles_its_two_programs_once_on_other_threads(caplog):
+    rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=30, noise=0.3)
+    jax.clear_caches()
+    with caplog.at_level(logging.DEBUG), jax.log_compiles():
+        result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+        again = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    for name in ("_start", "_calibrate_rig"):
+        threads = _compiled_on(caplog, name)
+        assert len(threads) == 1 and threads[0].startswith("mvcalib-compile"), (name, threads)
+    assert bool(result.ok.all())
+    np.testing.assert_array_equal(result.cameras.t, again.cameras.t)
+
+
+def test_ahead_is_only_a_hint():
+    calls = []
+
+    @functools.partial(_buckets.jit, static_argnames="k")
+    def scaled(x, k):
+        calls.append(k)  # (at each trace)
+        return x * k
+
+    def checked(x, k):
+        if k < 0:
+            raise ValueError("negative")
+        return scaled(x, k=k)
+
+    x = np.arange(3.0)
+    _buckets.ahead(checked, x, -1)  # fails before its program: nothing, no error
+    assert calls == [] and not scaled._compiling
+    jax.jit(lambda x: _buckets.ahead(checked, x, 2) or x)(x)  # inside a trace: nothing
+    assert calls == []
+    _buckets.ahead(checked, x, 2)  # traced here, compiled on another thread
+    assert calls == [2] and len(scaled._compiling) == 1
+    np.testing.assert_array_equal(checked(x, 2), 2 * x)  # waits for it: no second trace
+    assert calls == [2] and not scaled._compiling
+    _buckets.ahead(checked, x, 2)  # compiled already: nothing to do
+    assert calls == [2] and not scaled._compiling
