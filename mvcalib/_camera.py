@@ -317,6 +317,19 @@ def usable_rig(cameras: Camera, mask: Bool[Array, "*batch C N"], stand_in: Camer
     return where_cameras(usable, cameras, stand_in), mask & usable[:, None], usable
 
 
+def placeholder(batch: tuple[int, ...], dtype, lens: str = "pinhole", fill=0.0) -> Camera:
+    """Cameras of shape `batch` whose every parameter is `fill` (NumPy arrays), of the type of
+    every `Camera` computed in `dtype` with this lens: what a program is compiled for before the
+    cameras it will take are known (`_buckets.ahead`)."""
+    shapes = _camera_shapes(np.dtype(dtype), lens)
+    return jax.tree_util.tree_map(lambda x: np.full(batch + x.shape, fill, x.dtype), shapes)
+
+
+@functools.cache
+def _camera_shapes(dtype, lens: str):
+    return jax.eval_shape(functools.partial(unit_camera, dtype, lens))
+
+
 def unit_camera(dtype, lens: str = "pinhole") -> Camera:
     """A finite camera: unit focal lengths, at the origin, looking along z from z = -1."""
     one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)

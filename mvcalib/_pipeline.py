@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _status, _validate
-from ._camera import Camera
+from ._camera import Camera, placeholder
 from ._report import ReprojectionReport, compute_report, format_table, masked_rms
 from ._status import Status
 
@@ -152,7 +152,8 @@ def calibrate(
         (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
         quick = _dlt.compact(*mask.shape)
         if options is not None:  # the refinement compiles on a second thread meanwhile
-            _buckets.ahead(_refine_padded, _seed_like(pixels, skew), world, pixels, mask, options)
+            seed = placeholder(pixels.shape[:-2], pixels.dtype, fill=np.nan)
+            _buckets.ahead(_refine_padded, seed, world, pixels, mask, options)
         result = _calibrate(world, pixels, mask, quick=quick, **settings)
         if options is not None:
             result = _refined_bucket(
@@ -215,18 +216,6 @@ def _refine_padded(seed, world, pixels, mask, options):
     from . import _refine  # Optimistix and Lineax are imported only when refining
 
     return _refine.refine(seed, world, pixels, mask, **options)
-
-
-def _seed_like(pixels, skew: bool) -> Camera:
-    """NaN cameras (NumPy) of the type, shape and dtype of `_calibrate`'s for these pixels."""
-    shapes = _cameras_shape(pixels.shape[:-2], np.dtype(pixels.dtype), skew)
-    return jax.tree_util.tree_map(lambda x: np.full(x.shape, np.nan, x.dtype), shapes)
-
-
-@functools.cache
-def _cameras_shape(batch: tuple, dtype, skew: bool):
-    P = jax.ShapeDtypeStruct(batch + (3, 4), dtype)
-    return jax.eval_shape(functools.partial(Camera.from_projection, skew=skew), P)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)

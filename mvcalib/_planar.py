@@ -16,7 +16,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _status, _validate
-from ._camera import LENSES, Camera, lens_of
+from ._camera import LENSES, Camera, lens_of, placeholder
 from ._dlt import _design_matrix, _null_vector, _similarity
 from ._pipeline import CalibrationError
 from ._refine import (
@@ -598,6 +598,18 @@ def calibrate_planar(
     free_shared, free_pose = _free_masks(distortion, fix, skew, dtype, lens)  # checks the names
     skew = np.asarray(bool(skew))
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
+    solver = default_solver(dtype) if solver is None else solver
+    refine_options = (free_shared, free_pose, loss, solver, int(max_steps))
+    if _validate.is_concrete(world, pixels, mask):
+        # the programs compile on other threads, the later ones traced meanwhile
+        views = placeholder(mask.shape[:1], dtype, lens)
+        some = np.zeros(mask.shape[:1], bool)
+        if lens != "fisheye":
+            _buckets.ahead(_closed_form, world, plane, pixels, mask, skew, rcond, quick=quick)
+        if refine:
+            _buckets.ahead(_refine_views, views, some, world, pixels, mask, *refine_options,
+                           quick=quick)  # fmt: skip
+        _buckets.ahead(_finish, views, views, world, pixels, mask, some, quick=quick)
     if lens == "fisheye":
         H, seed, status, condition = _fisheye_seed(world, plane, pixels, mask, image_size, rcond)
         seed = jax.tree_util.tree_map(lambda x: x.astype(dtype), seed)
@@ -607,11 +619,9 @@ def calibrate_planar(
         )
     ok = _status.ok(status)
     if refine:
-        solver = default_solver(dtype) if solver is None else solver
         camera, iterations, result = _refine_views(
-            seed, ok, world, pixels, mask, free_shared, free_pose, loss, solver, int(max_steps),
-            quick=quick,
-        )  # fmt: skip
+            seed, ok, world, pixels, mask, *refine_options, quick=quick
+        )
     else:
         iterations = result = np.zeros((), np.int32)
     closed, camera, report, rms = _finish(

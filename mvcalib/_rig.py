@@ -34,6 +34,7 @@ from ._camera import (
     Camera,
     _lens,
     finite_cameras,
+    placeholder,
     undistort_points,
     unit_camera,
     where_cameras,
@@ -888,24 +889,17 @@ def _start(target, plane, pixels, mask, cameras, reference, rcond, *, planar, gi
 def _start_like(C: int, F: int, dtype, lens: str) -> tuple:
     """Zeros (NumPy) of the types and shapes `_start` returns for C cameras and F frames: the
     joint solve's program can be compiled before the start is known."""
-    camera = _camera_shape(np.dtype(dtype), lens)
-    like = lambda tree, n: jax.tree_util.tree_map(  # noqa: E731
-        lambda x: np.zeros((n,) + x.shape, x.dtype), tree
+    frames = jax.tree_util.tree_map(
+        lambda x: np.zeros((F,) + x.shape, x.dtype), RigidTransform.identity(dtype)
     )
-    frames = like(RigidTransform.identity(dtype), F)
     return (
-        like(camera, C),
+        placeholder((C,), dtype, lens),
         frames,
         np.zeros((C, F), bool),
         np.zeros(F, bool),
         np.zeros(C, np.int32),
         np.zeros((), dtype),
     )
-
-
-@functools.cache
-def _camera_shape(dtype, lens: str):
-    return jax.eval_shape(functools.partial(unit_camera, dtype, lens))
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)

@@ -2,6 +2,7 @@
 
 import functools
 import logging
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -140,17 +141,40 @@ def test_refinement_compiles_once_on_a_second_thread(caplog):
     np.testing.assert_allclose(result.report.rms, alone.report.rms, rtol=1e-9)
 
 
-def test_rig_compiles_its_two_programs_once_on_other_threads(caplog):
+def _board_rig():
     rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=30, noise=0.3)
+    return mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+
+
+def _planar_views():
+    from test_planar import WORLD, observe
+
+    return mc.calibrate_planar(WORLD, *observe(noise=0.3))
+
+
+@pytest.mark.parametrize(
+    "call, programs",
+    [
+        (_board_rig, ("_start", "_calibrate_rig")),
+        (_planar_views, ("_closed_form", "_refine_views", "_finish")),
+    ],
+)
+def test_programs_compile_once_on_other_threads(caplog, call, programs):
+    """A call that runs several programs one after the other has them all compiled at once, on
+    other threads, each once; the answer is that of the programs compiled on the spot."""
     jax.clear_caches()
     with caplog.at_level(logging.DEBUG), jax.log_compiles():
-        result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
-        again = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
-    for name in ("_start", "_calibrate_rig"):
+        result = call()
+        again = call()
+    for name in programs:
         threads = _compiled_on(caplog, name)
         assert len(threads) == 1 and threads[0].startswith("mvcalib-compile"), (name, threads)
-    assert bool(result.ok.all())
-    np.testing.assert_array_equal(result.cameras.t, again.cameras.t)
+    assert bool(np.all(np.asarray(result.ok)))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, result, again)
+    jax.clear_caches()
+    with mock.patch.object(_buckets, "ahead", lambda *args, **kwargs: None):
+        alone = call()  # compiled on the spot, on this thread
+    jax.tree_util.tree_map(np.testing.assert_array_equal, result, alone)
 
 
 def test_ahead_is_only_a_hint():
