@@ -37,7 +37,9 @@ the answer, and prints them as JSON; the parent also records the process's wall 
   `*`; one camera's cost does not depend on the others).
 
 The ratio is OpenCV's first answer over mvcalib's (above 1: mvcalib first). Break-even: a line
-t = a + b C is put through each side's first answers at the two largest C (64 and 4096), and
+t = a + b C is put through each side's first answers at the two neighbouring C between which
+the two change order (refine and OpenCV run at C = 4, 64, 1024, 2048, 4096; where they do not
+change order, the two largest C, extrapolated: `measured` in the JSON says which), and
 mvcalib's fresh-process `calibrate(..., refine=True)` finishes first from C* = (a_mv - a_cv) /
 (b_cv - b_mv) cameras on, when b_cv > b_mv (it never does otherwise). The two-point slope of
 mvcalib also holds the difference between two compilations, which need not grow with C (it can
@@ -85,9 +87,11 @@ import mvcalib as mc  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# C per task ("opencv": the peer's rows); the break-even needs refine and opencv at 64 and 4096
+# C per task ("opencv": the peer's rows); the break-even needs refine and opencv at two C, and
+# is measured (not extrapolated) where the two cross between two of them
+CROSSING = (4, 64, 1024, 2048, 4096)
 N_CAMERAS = {
-    "full": {"calibrate": (4, 64, 4096), "refine": (4, 64, 4096), "opencv": (4, 64, 4096)},
+    "full": {"calibrate": (4, 64, 4096), "refine": CROSSING, "opencv": CROSSING},
     "quick": {"calibrate": (4096,), "refine": (64, 4096), "opencv": (64, 4096)},
 }
 OPENCV_CAMERAS = {"full": None, "quick": 512}  # None: time the loop on every camera
@@ -275,11 +279,18 @@ def break_even(rows) -> dict | None:
     """Where mvcalib's fresh-process refine (compile included) finishes before OpenCV's loop."""
     refine = {r["n_cameras"]: r for r in rows if r["task"] == "refine"}
     opencv = {r["n_cameras"]: r for r in rows if r["task"] == "opencv"}
-    sizes = sorted(set(refine) & set(opencv))[-2:]
-    if len(sizes) < 2:
+    common = sorted(set(refine) & set(opencv))
+    if len(common) < 2:
         return None
+    # the two neighbouring C between which the first answers change order (the crossing is
+    # measured, between them), else the two largest (extrapolated)
+    ahead = [refine[C]["first_answer_s"] < opencv[C]["first_answer_s"] for C in common]
+    pairs = [i for i in range(len(common) - 1) if ahead[i] != ahead[i + 1]]
+    i = pairs[0] if pairs else len(common) - 2
+    sizes = common[i : i + 2]
     mv, cv = line_through(refine, sizes), line_through(opencv, sizes)
     out = {"mvcalib_refine": mv, "opencv": cv, "C_star": crossing(mv, cv)}
+    out["measured"] = bool(pairs)  # between two measured C, not extrapolated
     # The same from mvcalib's largest row with its slope from that process's warm second call
     # (the run without the compile): the two-point line's slope also holds the difference of
     # two compilations, which need not grow with C.
@@ -368,7 +379,8 @@ def print_break_even(b):
         return
     mv, cv = b["mvcalib_refine"], b["opencv"]
     C0, C1 = mv["through"]
-    print(f"\nbreak-even, first answers fitted by t = a + b C through C = {C0} and {C1}:")
+    where = "between which they change order" if b["measured"] else "(extrapolated)"
+    print(f"\nbreak-even, first answers fitted by t = a + b C through C = {C0} and {C1} {where}:")
     print(
         f"  mvcalib calibrate(refine=True): a = {mv['a_s']:.2f} s, "
         f"b = {1e3 * mv['b_s_per_camera']:.3f} ms/camera"

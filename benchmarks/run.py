@@ -211,7 +211,9 @@ def print_first_call(payload):
         star = lambda c: "none" if c is None else f"{c:.0f} cameras"  # noqa: E731
         print(
             f"  break-even of refine=True against the OpenCV loop: C* = {star(even['C_star'])} "
-            f"(lines through C = {C0}, {C1}); {star(even['C_star_warm_slope'])} with mvcalib's "
+            f"(lines through C = {C0}, {C1}, "
+            f"{'measured' if even.get('measured') else 'extrapolated'}); "
+            f"{star(even['C_star_warm_slope'])} with mvcalib's "
             "warm slope"
         )
 
