@@ -1228,6 +1228,28 @@ def calibrate_rig(
                 jnp.where(dropped, dropped_rms, result.camera_rms),
             ),
         )
+    # A camera left out may be a good one that started badly (its own frames leave its focal
+    # length loose, and its own solve wandered off): calibrated against the rest of the rig, whose
+    # frames' poses make its points 3-D, it joins again if it fits, and the rig is solved once
+    # more from there (with every camera's start given: no second rejoining).
+    if concrete and dropped.any() and cameras is None and lens == "pinhole":
+        ok = np.asarray(result.status) == Status.OK
+        if not isinstance(reference, str):
+            solve_reference = int(reference)
+        else:
+            solve_reference = int(np.argmax((mask & ~dropped[:, None, None]).any(-1).sum(1)))
+        start = _resected(result, dropped, target, pixels, mask, distortion, skew, dtype)
+        joins = np.isfinite(np.asarray(start.alpha_u)) & dropped
+        if joins.any() and (ok | dropped).all():
+            say(f"camera {', '.join(map(str, np.flatnonzero(joins)))}: fits the rest of the rig; "
+                "solved again with it")  # fmt: skip
+            again = calibrate_rig(
+                target, pixels, mask, cameras=start, fix=fix, distortion=distortion, skew=skew,
+                reference=solve_reference, loss=loss, rcond=rcond,
+                max_relative_rms=max_relative_rms, max_steps=max_steps, verbose=verbose,
+            )  # fmt: skip
+            if (np.asarray(again.status) == Status.OK)[ok | joins].all():
+                result = again
     say(
         f"RMS {float(result.rms):.3f} px after {int(result.iterations)} steps"
         if concrete
@@ -1236,6 +1258,31 @@ def calibrate_rig(
     if reference == "target":
         result = _to_target_frame(result, origin_frame, concrete)
     return result
+
+
+def _resected(result, dropped, target, pixels, mask, distortion, skew, dtype) -> Camera:
+    """The rig's cameras, each camera `dropped` replaced by its calibration (`calibrate`,
+    refined) from its points in the frames the rest of the rig posed: NaN where it does not fit
+    (or sees fewer than the DLT's points)."""
+    from ._pipeline import calibrate
+
+    posed = np.isfinite(np.asarray(result.target_poses.t)).all(-1)
+    R, t = np.asarray(result.target_poses.R), np.asarray(result.target_poses.t)
+    points = np.einsum("fij,nj->fni", R[posed], np.asarray(target)) + t[posed][:, None]
+    cameras = jax.tree_util.tree_map(np.array, result.cameras)
+    for c in np.flatnonzero(dropped):
+        seen = np.asarray(mask)[c][posed]
+        if seen.sum() < _validate.MIN_POINTS:
+            continue
+        refine = {"skew": skew} if distortion is None else {"skew": skew, "distortion": distortion}
+        alone = calibrate(
+            points[seen].astype(dtype), np.asarray(pixels)[c][posed][seen].astype(dtype),
+            refine=refine,
+        )  # fmt: skip
+        if bool(alone.ok):
+            for name in ("alpha_u", "alpha_v", "u0", "v0", "skew", "R", "t", "dist"):
+                getattr(cameras, name)[c] = np.asarray(getattr(alone.cameras, name))
+    return jax.device_put(cameras)
 
 
 def _is_planar(target: np.ndarray) -> bool:
