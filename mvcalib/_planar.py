@@ -600,12 +600,14 @@ def calibrate_planar(
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
     solver = default_solver(dtype) if solver is None else solver
     refine_options = (free_shared, free_pose, loss, solver, int(max_steps))
-    if _validate.is_concrete(world, pixels, mask):
-        # the programs compile on other threads, the later ones traced meanwhile
+    closed_form = functools.partial(
+        _closed_form, world, plane, pixels, mask, skew, rcond, quick=quick
+    )
+    if xp is np:  # concrete: the programs compile on other threads, the later ones traced meanwhile
         views = placeholder(mask.shape[:1], dtype, lens)
         some = np.zeros(mask.shape[:1], bool)
         if lens != "fisheye":
-            _buckets.ahead(_closed_form, world, plane, pixels, mask, skew, rcond, quick=quick)
+            _buckets.ahead(closed_form)
         if refine:
             _buckets.ahead(_refine_views, views, some, world, pixels, mask, *refine_options,
                            quick=quick)  # fmt: skip
@@ -614,9 +616,7 @@ def calibrate_planar(
         H, seed, status, condition = _fisheye_seed(world, plane, pixels, mask, image_size, rcond)
         seed = jax.tree_util.tree_map(lambda x: x.astype(dtype), seed)
     else:
-        H, seed, status, condition = _closed_form(
-            world, plane, pixels, mask, skew, rcond, quick=quick
-        )
+        H, seed, status, condition = closed_form()
     ok = _status.ok(status)
     if refine:
         camera, iterations, result = _refine_views(

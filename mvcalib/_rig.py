@@ -1205,9 +1205,9 @@ def calibrate_rig(
                 f"the reference camera {solve_reference} cannot be calibrated: "
                 f"{Status(status).message}. Choose another `reference`."
             )
-        return result
+        return result, solve_reference
 
-    result = solve(mask, observed)
+    result, solve_reference = solve(mask, observed)
     # Outside a trace, a POOR_FIT camera, which pulled the others in the solve it took part in,
     # is left out and the rest solved again (by the same compiled program), until none is new.
     dropped, dropped_rms = np.zeros(C, bool), np.full(C, np.nan)
@@ -1219,14 +1219,12 @@ def calibrate_rig(
         )
         dropped, dropped_rms = dropped | poor, np.where(poor, rms, dropped_rms)
         keep = ~dropped[:, None, None]
-        result = solve(mask & keep, observed & keep)
+        result, solve_reference = solve(mask & keep, observed & keep)
+        status = np.where(dropped, Status.POOR_FIT, np.asarray(result.status)).astype(np.int32)
+        rms = np.where(dropped, dropped_rms, np.asarray(result.camera_rms))
+        # (from NumPy: no small eager programs)
         result = eqx.tree_at(
-            lambda r: (r.status, r.camera_rms),
-            result,
-            (
-                jnp.where(dropped, Status.POOR_FIT, result.status).astype(jnp.int32),
-                jnp.where(dropped, dropped_rms, result.camera_rms),
-            ),
+            lambda r: (r.status, r.camera_rms), result, jax.device_put((status, rms))
         )
     # A camera left out may be a good one that started badly (its own frames leave its focal
     # length loose, and its own solve wandered off): calibrated against the rest of the rig, whose
@@ -1234,10 +1232,6 @@ def calibrate_rig(
     # more from there (with every camera's start given: no second rejoining).
     if concrete and dropped.any() and cameras is None and lens == "pinhole":
         ok = np.asarray(result.status) == Status.OK
-        if not isinstance(reference, str):
-            solve_reference = int(reference)
-        else:
-            solve_reference = int(np.argmax((mask & ~dropped[:, None, None]).any(-1).sum(1)))
         start = _resected(result, dropped, target, pixels, mask, distortion, skew, dtype)
         joins = np.isfinite(np.asarray(start.alpha_u)) & dropped
         if joins.any() and (ok | dropped).all():
@@ -1270,18 +1264,18 @@ def _resected(result, dropped, target, pixels, mask, distortion, skew, dtype) ->
     R, t = np.asarray(result.target_poses.R), np.asarray(result.target_poses.t)
     points = np.einsum("fij,nj->fni", R[posed], np.asarray(target)) + t[posed][:, None]
     cameras = jax.tree_util.tree_map(np.array, result.cameras)
+    refine = {"skew": skew} if distortion is None else {"skew": skew, "distortion": distortion}
     for c in np.flatnonzero(dropped):
         seen = np.asarray(mask)[c][posed]
         if seen.sum() < _validate.MIN_POINTS:
             continue
-        refine = {"skew": skew} if distortion is None else {"skew": skew, "distortion": distortion}
         alone = calibrate(
             points[seen].astype(dtype), np.asarray(pixels)[c][posed][seen].astype(dtype),
             refine=refine,
         )  # fmt: skip
         if bool(alone.ok):
-            for name in ("alpha_u", "alpha_v", "u0", "v0", "skew", "R", "t", "dist"):
-                getattr(cameras, name)[c] = np.asarray(getattr(alone.cameras, name))
+            for rig, one in zip(*map(jax.tree_util.tree_leaves, (cameras, alone.cameras))):
+                rig[c] = one
     return jax.device_put(cameras)
 
 
