@@ -226,11 +226,12 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
         build = self.quick if quick else self.optimised
         signature = _signature(quick, args, kwargs)
         if _AHEAD.get():
-            if signature not in self._seen or not _holds_programs(build):  # (else compiled)
-                lowered = build.lower(*args, **kwargs)
-                self._compiling.append(_compiler().submit(lowered.compile))
-                self._seen.add(signature)
-            raise _Lowered
+            if signature in self._seen and _holds_programs(build):
+                raise _Lowered(None)  # compiled already
+            lowered = build.lower(*args, **kwargs)
+            self._compiling.append(_compiler().submit(lowered.compile))
+            self._seen.add(signature)
+            raise _Lowered(_stand_in(lowered))
         self._wait()
         out = build(*args, **kwargs)
         self._seen.add(signature)
@@ -285,7 +286,27 @@ _AHEAD = contextvars.ContextVar("mvcalib_ahead", default=False)
 
 class _Lowered(BaseException):
     """Raised by a `jit` called under `ahead`, once its program is lowered (a `BaseException`,
-    which no `except Exception` on the way out stops)."""
+    which no `except Exception` on the way out stops), with a stand-in of its outputs."""
+
+    def __init__(self, stand_in):
+        super().__init__()
+        self.stand_in = stand_in
+
+
+def _stand_in(lowered):
+    """NumPy arrays of the shapes and types of a lowered program's outputs (`jax.jit`'s or
+    `eqx.filter_jit`'s), NaN where they are floating-point, else zero. (A weakly typed output,
+    which JAX's `out_info` does not show and NumPy cannot stand in for, would have the program
+    that takes it compiled for the wrong type: mvcalib's programs return none, which the tests
+    that count compiles check.)"""
+
+    def fill(x):
+        return np.full(x.shape, np.nan if np.issubdtype(x.dtype, np.inexact) else 0, x.dtype)
+
+    inner = getattr(lowered, "lowered", None)  # `eqx.filter_jit`'s: JAX's, and its outputs' rebuild
+    if inner is None:
+        return jax.tree_util.tree_map(fill, lowered.out_info)
+    return lowered.postprocess(jax.tree_util.tree_map(fill, inner.out_info))
 
 
 @functools.cache
@@ -293,24 +314,30 @@ def _compiler() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="mvcalib-compile")
 
 
-def ahead(fun, /, *args, **kwargs) -> None:
+def ahead(fun, /, *args, **kwargs):
     """Start compiling the program that `fun(*args, **kwargs)` would call first (a `jit`'s), and
     return as soon as it is lowered: `fun` runs up to that call (its checks and padding, in
     NumPy) and no further, and XLA compiles the program on a second thread while the caller goes
     on. Call `fun` later with arguments of the same shapes and types: its call of the program
     waits for that compile instead of compiling again.
 
-    Only a hint: inside a trace, or if `fun` fails before its first program, nothing is
-    started (a real call would raise the same error)."""
+    Returns a stand-in of the program's outputs (NumPy arrays of their shapes and types, NaN or
+    zero), with which the `ahead` of a program that takes them can follow; `None` where nothing
+    was started. Only a hint: inside a trace, where the program is compiled already, or if `fun`
+    fails before its first program, nothing is started (a real call would raise the same
+    error)."""
     if not _top_level():
-        return
+        return None
     token = _AHEAD.set(True)
     try:
         fun(*args, **kwargs)
-    except (_Lowered, Exception):  # noqa: BLE001, S110 (an error: the real call will raise it)
+    except _Lowered as lowered:
+        return lowered.stand_in
+    except Exception:  # noqa: BLE001 (an error: the real call will raise it)
         pass
     finally:
         _AHEAD.reset(token)
+    return None
 
 
 def _top_level() -> bool:

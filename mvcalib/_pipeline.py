@@ -153,9 +153,12 @@ def calibrate(
         quick = _dlt.compact(*mask.shape)
         if options is not None:  # the refinement compiles on a second thread meanwhile
             seed = placeholder(pixels.shape[:-2], pixels.dtype, fill=np.nan)
-            _buckets.ahead(_refine_padded, seed, world, pixels, mask, options)
+            refined = _buckets.ahead(_refine_padded, seed, world, pixels, mask, options)
         result = _calibrate(world, pixels, mask, quick=quick, **settings)
         if options is not None:
+            if refined is not None:  # and the check of its cameras
+                check = (world, pixels, mask, max_relative_rms)
+                _buckets.ahead(_checked, result, refined, *check, quick=quick)
             result = _refined_bucket(
                 result, world, pixels, mask, options, max_relative_rms, math.prod(batch), quick
             )

@@ -627,7 +627,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     refined = jax.tree_util.tree_map(lambda x: jnp.where(enough, x, jnp.nan), refined)
     result = jnp.where(enough, sol.result._value, TOO_FEW_POINTS)  # noqa: SLF001
     return (
-        refined, rms(cam), rms(refined), sol.stats["num_steps"], result,
+        refined, rms(cam), rms(refined), sol.stats["num_steps"].astype(jnp.int32), result,
         inliers, cov, jnp.sqrt(jnp.diagonal(cov)),
     )  # fmt: skip
 

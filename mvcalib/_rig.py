@@ -34,7 +34,6 @@ from ._camera import (
     Camera,
     _lens,
     finite_cameras,
-    placeholder,
     undistort_points,
     unit_camera,
     where_cameras,
@@ -886,22 +885,6 @@ def _start(target, plane, pixels, mask, cameras, reference, rcond, *, planar, gi
     )
 
 
-def _start_like(C: int, F: int, dtype, lens: str) -> tuple:
-    """Zeros (NumPy) of the types and shapes `_start` returns for C cameras and F frames: the
-    joint solve's program can be compiled before the start is known."""
-    frames = jax.tree_util.tree_map(
-        lambda x: np.zeros((F,) + x.shape, x.dtype), RigidTransform.identity(dtype)
-    )
-    return (
-        placeholder((C,), dtype, lens),
-        frames,
-        np.zeros((C, F), bool),
-        np.zeros(F, bool),
-        np.zeros(C, np.int32),
-        np.zeros((), dtype),
-    )
-
-
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relative_rms, *, free,
                    loss, max_steps):  # fmt: skip
@@ -1192,8 +1175,8 @@ def calibrate_rig(
             **options,
         )  # fmt: skip
         if concrete:  # both programs compile on other threads, the second traced meanwhile
-            _buckets.ahead(start)
-            _buckets.ahead(joint, _start_like(C, F, dtype, lens))
+            if (start_like := _buckets.ahead(start)) is not None:
+                _buckets.ahead(joint, start_like)
         out = joint(start())
         result = RigCalibration(
             skipped=jax.device_put(skipped) if concrete else skipped,

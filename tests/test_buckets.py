@@ -134,8 +134,9 @@ def test_refinement_compiles_once_on_a_second_thread(caplog):
         result = mc.calibrate(world, pixels, mask, refine=True)
         again = mc.calibrate(world, pixels, mask, refine=True)
     assert _compiled_on(caplog, "_calibrate") == ["MainThread"]
-    threads = _compiled_on(caplog, "_refine_all")
-    assert len(threads) == 1 and threads[0].startswith("mvcalib-compile"), threads
+    for name in ("_refine_all", "_checked"):  # the check of the refined cameras too
+        threads = _compiled_on(caplog, name)
+        assert len(threads) == 1 and threads[0].startswith("mvcalib-compile"), (name, threads)
     np.testing.assert_array_equal(result.cameras.R, again.cameras.R)
     alone = jax.jit(functools.partial(mc.calibrate, refine=True))(world, pixels, mask)
     np.testing.assert_allclose(result.report.rms, alone.report.rms, rtol=1e-9)
@@ -195,9 +196,12 @@ def test_ahead_is_only_a_hint():
     assert calls == [] and not scaled._compiling
     jax.jit(lambda x: _buckets.ahead(checked, x, 2) or x)(x)  # inside a trace: nothing
     assert calls == []
-    _buckets.ahead(checked, x, 2)  # traced here, compiled on another thread
+    stand_in = _buckets.ahead(checked, x, 2)  # traced here, compiled on another thread
     assert calls == [2] and len(scaled._compiling) == 1
+    # what it returns stands in for the program's outputs (NaN of their shape and type), so
+    # that the programs that take them can be compiled ahead too
+    assert isinstance(stand_in, np.ndarray) and stand_in.shape == (3,) and np.isnan(stand_in).all()
     np.testing.assert_array_equal(checked(x, 2), 2 * x)  # waits for it: no second trace
     assert calls == [2] and not scaled._compiling
-    _buckets.ahead(checked, x, 2)  # compiled already: nothing to do
+    assert _buckets.ahead(checked, x, 2) is None  # compiled already: nothing to do
     assert calls == [2] and not scaled._compiling
