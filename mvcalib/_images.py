@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _buckets
 from ._detect import Detection, detect_dots
 from ._label import Labels, label_dots
 from ._match import match_dots
@@ -323,6 +324,12 @@ def calibrate_images(
     progress = len(images) > 4 if progress is None else progress
     detect, label = dict(detect or {}), dict(label or {})
     look = {} if second_look is True else (dict(second_look) if second_look else None)
+    dtype = jnp.result_type(float)
+    world = np.asarray(target.points, dtype)  # (NumPy in: `calibrate` pads it in NumPy anyway)
+    # the calibration's programs compile on other threads while the images are read and matched
+    views = (len(images), len(world))
+    _buckets.ahead(calibrate, world, np.zeros((*views, 2), dtype), np.ones(views, bool),
+                   refine=refine)  # fmt: skip
     names, detections, labels, pictures = [], [], [], {}
     for i, image in enumerate(images):
         is_path = isinstance(image, (str, os.PathLike))
@@ -344,9 +351,6 @@ def calibrate_images(
         if progress:
             print(f"[{i + 1}/{len(images)}] {names[-1]}: {labels[-1].message}", file=sys.stderr)
 
-    dtype = jnp.result_type(float)
-    world = np.asarray(target.points, dtype)  # (NumPy in: `calibrate` pads it in NumPy anyway)
-
     def calibrated(labels, leave_out=False):
         """The labels' pixels, the dots used (labelled, not `leave_out`) and every view
         calibrated from them."""
@@ -361,6 +365,8 @@ def calibrate_images(
         # With three or more, the dots beyond an image's gate are taken and judged across the
         # images: a dot the target misplaces is off in all of them, a bad one in one.
         check = len(pictures) >= 3
+        if check:  # (the triangulation that judges them compiles meanwhile)
+            _buckets.ahead(triangulate, calibration.cameras, pixels, mask)
         options = dict(dark_dots=detect.get("dark_dots", True), beyond_gate=check, **look)
         cameras = jax.tree_util.tree_map(np.asarray, calibration.cameras)
         ok = np.asarray(calibration.ok)

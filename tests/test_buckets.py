@@ -153,11 +153,20 @@ def _planar_views():
     return mc.calibrate_planar(WORLD, *observe(noise=0.3))
 
 
+def _photos():
+    target = mc.targets.box_corner()
+    rig = mc.synthetic.random_rig(jax.random.key(0), 3)
+    photos = [mc.synthetic.render(rig.cameras[i], target, key=i) for i in range(3)]
+    seeds = [rig.cameras[i] for i in range(3)]  # (seeded: a second look, judged by triangulating)
+    return mc.calibrate_images(photos, target, seeds=seeds, refine=True).calibration
+
+
 @pytest.mark.parametrize(
     "call, programs",
     [
         (_board_rig, ("_start", "_calibrate_rig")),
         (_planar_views, ("_closed_form", "_refine_views", "_finish")),
+        (_photos, ("_calibrate", "_refine_all", "_triangulate")),
     ],
 )
 def test_programs_compile_once_on_other_threads(caplog, call, programs):
