@@ -76,7 +76,13 @@ def run(
     *, noise: float = 0.3, global_noise: float = 0.0, seed: int = 2010, dtype=None
 ) -> DemoResult:
     """Run the paper's pipeline on `synthetic.paper_scene` and return every intermediate result."""
-    scene = paper_scene(jax.random.key(seed), noise=noise, global_noise=global_noise, dtype=dtype)
+    make = functools.partial(
+        paper_scene, jax.random.key(seed), noise=noise, global_noise=global_noise, dtype=dtype
+    )
+    # the scene's and the pipeline's programs compile at once, on other threads
+    if (scene := _buckets.ahead(make)) is not None:
+        _buckets.ahead(_pipeline, scene, noise, quick=True)
+    scene = make()
     # four snapshots of 19 dots: a small program, compiled quickly (`_buckets.jit`)
     calibration, reg, reg_paper, unified, unified_paper, sigma = _pipeline(scene, noise, quick=True)
     calibration.raise_if_failed()

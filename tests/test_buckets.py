@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import mvcalib as mc
-from mvcalib import _buckets, _dlt
+from mvcalib import _buckets, _dlt, demo
 
 
 def test_bucket_sizes():
@@ -167,6 +167,7 @@ def _photos():
         (_board_rig, ("_start", "_calibrate_rig")),
         (_planar_views, ("_closed_form", "_refine_views", "_finish")),
         (_photos, ("_calibrate", "_refine_all", "_triangulate")),
+        (lambda: demo.run().calibration, ("_paper_scene", "_pipeline")),
     ],
 )
 def test_programs_compile_once_on_other_threads(caplog, call, programs):
