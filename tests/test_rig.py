@@ -120,10 +120,50 @@ def test_a_good_camera_left_out_joins_again_when_it_fits_the_rest(capsys, monkey
     monkeypatch.setattr(mc._rig, "_calibrate_rig", first_flags_camera_1)
     result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, verbose=True)
     err = capsys.readouterr().err
-    assert "camera 1: poor fit" in err and "camera 1: fits the rest of the rig" in err
+    assert "camera 1: poor fit" in err and "camera 1: calibrated against the rest" in err
     assert bool(result.ok.all()) and len(calls) == 3  # flagged, without it, with it again
     a, b = np.asarray(result.cameras.center), np.asarray(clean.cameras.center)
     assert np.abs(a - b).max() < 1e-8
+
+
+def test_a_camera_far_worse_than_the_rest_starts_again(capsys, monkeypatch):
+    """The worst camera, more than 3 times the median camera's RMS after the first solve (here
+    camera 1, by a stand-in), is calibrated against the rest of the rig and the rig solved again
+    from there; the second answer fits better, and is the answer of a solve that started well."""
+    rig = _rig(noise=0.3)
+    clean = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    joint, calls = mc._rig._calibrate_rig, []
+
+    def first_has_camera_1_far_off(*args, **kwargs):
+        out = joint(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 1:
+            out["camera_rms"] = out["camera_rms"].at[1].multiply(20.0)
+        return out
+
+    monkeypatch.setattr(mc._rig, "_calibrate_rig", first_has_camera_1_far_off)
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, verbose=True)
+    assert "camera 1: calibrated against the rest" in capsys.readouterr().err
+    assert bool(result.ok.all()) and len(calls) == 2
+    a, b = np.asarray(result.cameras.center), np.asarray(clean.cameras.center)
+    assert np.abs(a - b).max() < 1e-8
+
+
+def test_a_start_that_wandered_off_is_caught(monkeypatch, request):
+    """16 cameras x 100 frames of a 6 x 8 board (key 10): camera 2's own frames leave its focal
+    length loose (closed form 10,885 px, its own solve 5,020, the truth 1,300). With the own
+    solves side by side (`vmap`, as on an accelerator) the joint solve ended in a minimum at
+    3.42 px RMS, camera 2 at 11.4 px and every camera OK; restarted from camera 2's resection
+    the rig comes out at 0.42 px."""
+    monkeypatch.setattr(mc._rig._sharding, "cpu_chunk", lambda n, size: None)
+    mc._rig._start.clear_cache()  # (traced with the own solves side by side, for this test only)
+    request.addfinalizer(mc._rig._start.clear_cache)
+    rig = mc.synthetic.board_rig(
+        jax.random.key(10), 16, 100, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
+    )
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    assert bool(result.ok.all()) and float(result.rms) < 0.43
+    assert abs(float(result.cameras.alpha_u[2]) / float(rig.cameras.alpha_u[2]) - 1) < 3e-3
 
 
 def test_a_camera_that_fits_nothing_is_not_let_back_in():
@@ -133,10 +173,10 @@ def test_a_camera_that_fits_nothing_is_not_let_back_in():
     pixels = np.asarray(rig.pixels).copy()
     pixels[2] += np.random.default_rng(0).normal(scale=60.0, size=pixels[2].shape)
     left_out = jax.tree_util.tree_map(np.asarray, mc.calibrate_rig(rig.target, pixels, rig.mask))
-    start = mc._rig._resected(
+    start, fitted = mc._rig._resected(
         left_out, np.arange(8) == 2, rig.target, pixels, rig.mask, None, False, np.float64
     )
-    assert np.isnan(np.asarray(start.alpha_u)[2])
+    assert not fitted.any() and np.isnan(np.asarray(start.alpha_u)[2])
     assert np.isfinite(np.asarray(start.alpha_u)[np.arange(8) != 2]).all()
 
 
