@@ -1233,12 +1233,14 @@ def calibrate_rig(
         ok, rms = np.asarray(result.status) == Status.OK, np.asarray(result.camera_rms)
         worst = np.arange(C) == np.argmax(np.where(ok, rms, -np.inf))
         worse = worst & (rms > _FAR_WORSE * np.median(rms[ok]))
-        start, fitted = _resected(
-            result, dropped | worse, target, pixels, mask, distortion, skew, dtype
-        )
-        if fitted.any() and (ok | dropped).all():
-            again = ", ".join(map(str, np.flatnonzero(fitted)))
-            say(f"camera {again}: calibrated against the rest of the rig; solved again from there")
+        # (none where a camera is neither: the solve from given cameras takes every camera)
+        retry = (dropped | worse) & (ok | dropped).all()
+        fitted = retry
+        if retry.any():
+            start, fitted = _resected(result, retry, target, pixels, mask, distortion, skew, dtype)
+        if fitted.any():
+            which = ", ".join(map(str, np.flatnonzero(fitted)))
+            say(f"camera {which}: calibrated against the rest of the rig; solved again from there")
             again = calibrate_rig(
                 target, pixels, mask, cameras=start, fix=fix, distortion=distortion, skew=skew,
                 reference=solve_reference, loss=loss, rcond=rcond,
@@ -1265,8 +1267,8 @@ def _rms_of(result: RigCalibration, cameras: np.ndarray) -> float:
 
 def _resected(result, which, target, pixels, mask, distortion, skew, dtype) -> tuple:
     """The rig's cameras, each camera `which` replaced by its calibration (`calibrate`, refined)
-    from its points in the frames the rig posed, where that calibration succeeds; and which
-    were (not: where it does not fit, or sees fewer than the DLT's points)."""
+    from its points in the frames the rig posed; and the `(C,)` mask of those replaced (not a
+    camera whose calibration fails, or that sees fewer than the DLT's points)."""
     from ._pipeline import calibrate
 
     posed = np.isfinite(np.asarray(result.target_poses.t)).all(-1)
