@@ -48,18 +48,22 @@ the angle of `R_i R_1^T`; "drot" is the angle between a tool's `R_i R_1^T` and c
 
 **Scale**: synthetic rigs `mc.synthetic.board_rig(jax.random.key(0), C, F,
 target=mc.synthetic.board(6, 8, 0.05), noise=0.3, **kwargs)` (N = 48 corners), C = 16 and 64
-cameras, F = 250 and 1000 frames; `kwargs` = `BOARD_RIG_KWARGS` (none; see there), and in
-full mode one more row, C = 16, F = 250 with the board in a smaller volume (`EXTRA_ROW`). Each
-configuration runs in its own fresh child process (persistent compilation cache off): the
-rig is made, then `mc.calibrate_rig(target, pixels, mask)` is called twice (first: trace +
-compile + run; warm: run). Reported: the warm time, the LM steps (`iterations`), warm time per
-step (this includes the closed-form start and the per-camera refinements before the joint LM:
-an upper bound of the step cost), whether it converged (`result`, 0 = yes), the RMS, the
-counts of calibrated cameras (`ok`) and statuses, the largest camera-centre error against the
-truth (camera 0's frame), and the child's peak resident memory (`ru_maxrss`, which includes
-XLA's compilation). A child that fails (out of memory, killed, over `--timeout`) is recorded
-with its error and whatever it reported before. Growth of the step cost with F: warm time per
-step at F = 1000 over F = 250 at the same C (linear in F expected: the frames are eliminated).
+cameras, F = 250 and 1000 frames; `kwargs` = `BOARD_RIG_KWARGS` (none; see there), and in full
+mode one more row, C = 16, F = 250 with the board in a smaller volume (`EXTRA_ROW`). Each
+configuration runs in its own fresh child process (persistent compilation cache off): the rig
+is made, then `mc.calibrate_rig(target, pixels, mask)` is called twice (first: trace + compile
++ run; warm: run). Reported: the warm time, the LM steps (`iterations`), warm time per step
+(this includes the closed-form start and the per-camera refinements before the joint LM: an
+upper bound of the step cost); the warm call's programs timed apart (each call wrapped in
+`jax.block_until_ready`): the start (`_start`: closed form, each camera refined alone with its
+own frames) and the joint solve (`_calibrate_rig`: LM, uncertainty, report), whose last call
+over its steps is the joint solve's time per step; whether it converged (`result`, 0 = yes),
+the RMS, the counts of calibrated cameras (`ok`) and statuses, the largest camera-centre error
+against the truth (camera 0's frame), and the child's peak resident memory (`ru_maxrss`, which
+includes XLA's compilation). A child that fails (out of memory, killed, over `--timeout`) is
+recorded with its error and whatever it reported before. Growth of the step cost with F: warm
+time per step, and the joint solve's time per step, at F = 1000 over F = 250 at the same C
+(linear in F expected: the frames are eliminated).
 
 `--quick`: the real data and the C = 16, F = 250 rig only, 3 rounds. `--only real,scale` picks
 the parts, `--sizes 16x250,64x1000` the rigs. aniposelib is optional: if it cannot be imported
@@ -424,9 +428,28 @@ t_data = time.perf_counter()
 out = jax.block_until_ready(mc.calibrate_rig(target, pixels, mask))
 t_call = time.perf_counter()
 report("first", out, t_start=t_start, t_import=t_import, t_data=t_data, t_call=t_call)
+stages = {{"_start": [], "_calibrate_rig": []}}  # the warm call's programs, each call timed
+
+
+def timed(name):
+    program = getattr(mc._rig, name)
+
+    def call(*args, **kwargs):
+        t = time.perf_counter()
+        out = jax.block_until_ready(program(*args, **kwargs))
+        stages[name].append(time.perf_counter() - t)
+        return out
+
+    return call
+
+
+for name in stages:
+    setattr(mc._rig, name, timed(name))
+t_call = time.perf_counter()
 out = jax.block_until_ready(mc.calibrate_rig(target, pixels, mask))
 t_warm = time.perf_counter()
-report("warm", out, t_call=t_call, t_warm=t_warm)
+report("warm", out, t_call=t_call, t_warm=t_warm, start_s=stages["_start"],
+       joint_s=stages["_calibrate_rig"])  # fmt: skip
 """
 
 
@@ -495,6 +518,8 @@ def scale_row(C: int, F: int, kwargs: dict, timeout: float) -> dict:
         row["warm_call_s"] = warm["t_warm"] - warm["t_call"]
         row["steps"] = warm["iterations"]
         row["warm_s_per_step"] = row["warm_call_s"] / max(warm["iterations"], 1)
+        if warm.get("joint_s"):  # the last joint solve's program over its steps
+            row["joint_s_per_step"] = warm["joint_s"][-1] / max(warm["iterations"], 1)
         if "first_call_s" in row:
             row["first_minus_warm_s"] = row["first_call_s"] - row["warm_call_s"]
         row |= {k: v for k, v in warm.items() if not k.startswith("t_") and k != "iterations"}
@@ -673,7 +698,7 @@ def print_scale(rows: list[dict]) -> None:
         f"\nscale: board_rig, {BOARD[0]} x {BOARD[1]} board, noise {NOISE} px, fresh process each"
     )
     head = f"{'C':>4}{'F':>6}{'obs':>9}{'first s':>9}{'compile':>8}{'warm s':>8}{'steps':>6}"
-    head += f"{'s/step':>7}"
+    head += f"{'s/step':>7}{'start s':>8}{'joint/step':>11}"
     head += f"{'result':>7}{'RMS px':>9}{'ok':>7}{'centre err m':>14}{'peak MB':>9}  kwargs"
     print(head)
     print("-" * len(head))
@@ -683,7 +708,8 @@ def print_scale(rows: list[dict]) -> None:
         if "warm_call_s" in r:
             line += (
                 f"{r['first_minus_warm_s']:>8.1f}{r['warm_call_s']:>8.2f}{r['steps']:>6}"
-                f"{r['warm_s_per_step']:>7.2f}{r['result']:>7}{r['rms_px']:>9.3f}"
+                f"{r['warm_s_per_step']:>7.2f}{sum(r.get('start_s', [np.nan])):>8.2f}"
+                f"{r.get('joint_s_per_step', np.nan):>11.3f}{r['result']:>7}{r['rms_px']:>9.3f}"
                 f"{r['ok']:>4}/{r['n_cameras']:<2}{r['max_centre_error_m']:>14.2e}"
                 f"{r['peak_rss_mb']:>9.0f}"
             )
@@ -696,11 +722,14 @@ def print_scale(rows: list[dict]) -> None:
         F0, F1 = g["F"]
         print(
             f"C = {C}: from F = {F0} to {F1} (x{F1 / F0:.0f}) warm time x{g['warm_ratio']:.2f}, "
-            f"warm time per step x{g['per_step_ratio']:.2f}"
+            f"warm time per step x{g['per_step_ratio']:.2f}, the joint solve's time per step "
+            f"x{g.get('joint_per_step_ratio', np.nan):.2f}"
         )
     print("first s: the first call in the child (trace + compile + run); compile: first - warm.")
     print("warm s/step: the whole warm call (closed form, each camera refined alone, then the")
-    print("  joint LM) over the joint LM's steps: an upper bound of one step's cost. centre err:")
+    print("  joint LM) over the joint LM's steps: an upper bound of one step's cost. start s: the")
+    print("  warm call's start program(s) (closed form, each camera refined alone). joint/step:")
+    print("  the last joint solve's program (LM, uncertainty, report) over its steps. centre err:")
     print("  largest distance of a camera centre from the truth (camera 0's frame). ok: cameras")
     print("  with status OK. peak MB: the child's ru_maxrss (XLA's compilation included).")
 
@@ -722,6 +751,8 @@ def step_growth(rows: list[dict]) -> dict:
                 "warm_ratio": b["warm_call_s"] / a["warm_call_s"],
                 "per_step_ratio": b["warm_s_per_step"] / a["warm_s_per_step"],
             }
+            if "joint_s_per_step" in a and "joint_s_per_step" in b:
+                out[str(C)]["joint_per_step_ratio"] = b["joint_s_per_step"] / a["joint_s_per_step"]
     return out
 
 
