@@ -567,7 +567,8 @@ def _block_rows(yc, yf, cam, frame, data, free, loss):
 
 def _normal(y, args, free, loss) -> _Normal:
     """The blocks of the normal equations at `y`, camera by camera (a loop: one camera's
-    Jacobians over all frames at a time, so that memory grows with F, not C F)."""
+    Jacobians at a time, so that memory grows with F, not C F), each camera's over its frames in
+    chunks of `FRAME_CHUNK` on a CPU (which stay in cache)."""
     p0, R0, scale, move_c, R0f, t0f, move_f, distance, target, pixels, mask = args
 
     def camera(inputs):
