@@ -100,6 +100,22 @@ def test_disconnected_camera_gets_its_status_and_changes_nothing():
     assert np.abs(a - b).max() < 1e-8
 
 
+def _first_solve_altered(monkeypatch, key: str, alter) -> list:
+    """`calibrate_rig`'s joint solves counted (the returned list), the first one's output `key`
+    replaced by `alter` of it: a stand-in for a solve that ended badly."""
+    joint, calls = mc._rig._calibrate_rig, []
+
+    def altered(*args, **kwargs):
+        out = joint(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 1:
+            out[key] = alter(out[key])
+        return out
+
+    monkeypatch.setattr(mc._rig, "_calibrate_rig", altered)
+    return calls
+
+
 def test_a_good_camera_left_out_joins_again_when_it_fits_the_rest(capsys, monkeypatch):
     """A camera that the solve flags POOR_FIT (here by a stand-in for a start that wandered off:
     64 cameras x 250 frames of a 6 x 8 board, camera 39's own solve went from 1404 to 88 px of
@@ -108,16 +124,7 @@ def test_a_good_camera_left_out_joins_again_when_it_fits_the_rest(capsys, monkey
     solve that never lost it."""
     rig = _rig(noise=0.3)
     clean = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
-    joint, calls = mc._rig._calibrate_rig, []
-
-    def first_flags_camera_1(*args, **kwargs):
-        out = joint(*args, **kwargs)
-        calls.append(1)
-        if len(calls) == 1:
-            out["status"] = out["status"].at[1].set(mc.Status.POOR_FIT)
-        return out
-
-    monkeypatch.setattr(mc._rig, "_calibrate_rig", first_flags_camera_1)
+    calls = _first_solve_altered(monkeypatch, "status", lambda s: s.at[1].set(mc.Status.POOR_FIT))
     result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, verbose=True)
     err = capsys.readouterr().err
     assert "camera 1: poor fit" in err and "camera 1: calibrated against the rest" in err
@@ -132,16 +139,7 @@ def test_a_camera_far_worse_than_the_rest_starts_again(capsys, monkeypatch):
     from there; the second answer fits better, and is the answer of a solve that started well."""
     rig = _rig(noise=0.3)
     clean = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
-    joint, calls = mc._rig._calibrate_rig, []
-
-    def first_has_camera_1_far_off(*args, **kwargs):
-        out = joint(*args, **kwargs)
-        calls.append(1)
-        if len(calls) == 1:
-            out["camera_rms"] = out["camera_rms"].at[1].multiply(20.0)
-        return out
-
-    monkeypatch.setattr(mc._rig, "_calibrate_rig", first_has_camera_1_far_off)
+    calls = _first_solve_altered(monkeypatch, "camera_rms", lambda r: r.at[1].multiply(20.0))
     result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, verbose=True)
     assert "camera 1: calibrated against the rest" in capsys.readouterr().err
     assert bool(result.ok.all()) and len(calls) == 2
