@@ -1,18 +1,20 @@
 """Calibration of a rig from a target moved through its volume: every camera's intrinsics,
 distortion and pose, and the target's pose in every frame, from observations `(C, F, N)`.
 
-The closed form first, batched over every (camera, frame) pair: a planar target's homography
-and OpenCV's initial intrinsics per camera (the focal lengths from the homographies, the
-principal point at the centre), then each pair's target pose (a 3-D target: the DLT of each
-pair); then each camera's intrinsics, distortion and poses refined from its own frames (the
-rig's solver with one camera, vmapped). Each pair of cameras' relative pose is the robust
-average (Weiszfeld's geometric median) over the frames both saw; the cameras are chained to the
-reference over a maximum spanning tree of the camera graph weighted by shared frames (Prim's
-algorithm, in a loop of C steps), and each frame's pose is the robust average of its cameras'
-views of it. Then one Levenberg–Marquardt over all cameras and frames (an optimistix solver,
-`_SchurLM`), whose normal equations are solved with the frames eliminated (the Schur
-complement): a step costs `F (C P)^2` for the reduced camera system of `C P` unknowns, linear
-in the number of frames.
+The closed form first, batched over every (camera, frame) pair: a planar target's homography and
+OpenCV's initial intrinsics per camera (the focal lengths from the homographies, the principal
+point at the centre), then each pair's target pose (a 3-D target: the DLT of each pair); then
+each camera's intrinsics, distortion and poses refined from its own frames (the rig's solver
+with one camera, for one camera after the other on a CPU). Each pair of cameras' relative pose
+is the robust average (Weiszfeld's geometric median) over the frames both saw; the cameras are
+chained to the reference over a maximum spanning tree of the camera graph weighted by shared
+frames (Prim's algorithm, in a loop of C steps), and each frame's pose is the robust average of
+its cameras' views of it. Then one Levenberg–Marquardt over all cameras and frames (an
+optimistix solver, `_SchurLM`), whose normal equations are solved with the frames eliminated
+(the Schur complement): a step costs `F (C P)^2` for the reduced camera system of `C P`
+unknowns, linear in the number of frames. Outside `jit`, a camera that ends `POOR_FIT`, or fits
+far worse than the rest, is calibrated against the rest of the rig and the rig solved once more
+from there (`calibrate_rig`).
 """
 
 from __future__ import annotations
@@ -420,9 +422,9 @@ def _initialise(
 
 
 def _refine_own(cams, Rp, tp, ok, distance, target, pixels, mask, free, loss, max_steps):
-    """Each camera's free intrinsics and distortion and its frames' poses,
-    from its own frames alone: the rig's problem with one camera at the origin, for every camera
-    at once (vmapped)."""
+    """Each camera's free intrinsics and distortion and its frames' poses, from its own frames
+    alone: the rig's problem with one camera at the origin, for every camera (one after the other
+    on a CPU, side by side elsewhere)."""
     eye = jnp.eye(3, dtype=Rp.dtype)
     pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
     move = (~pose).astype(Rp.dtype)[None]
@@ -1078,7 +1080,11 @@ def calibrate_rig(
     took part in, where it pulled the others: called with concrete arrays, the rig is solved
     again without it (by the same compiled program) until no camera is newly flagged; inside
     `jax.jit` it is only flagged. (A robust `loss` keeps wrong detections of an otherwise good
-    camera from pulling the others.)
+    camera from pulling the others.) Then, with concrete arrays, a camera left out, or the worst
+    camera where its RMS is more than 3 times the median camera's (a good camera whose own
+    frames left its start loose can end in another minimum), is calibrated from its points in
+    the frames the rig posed, and the rig solved once more from there; that answer is taken if
+    every camera is OK and the cameras fit better (`verbose` says so).
 
     **Example:**
 
