@@ -2,7 +2,7 @@
 distortion and pose, and the target's pose in every frame, from observations `(C, F, N)`.
 
 The closed form first, batched over every (camera, frame) pair: a planar target's homography and
-OpenCV's initial intrinsics per camera (the focal lengths from the homographies, the principal
+each camera's starting intrinsics (its focal length the median of its frames' own, the principal
 point at the centre), then each pair's target pose (a 3-D target: the DLT of each pair); then
 each camera's intrinsics, distortion and poses refined from its own frames (the rig's solver
 with one camera, for one camera after the other on a CPU). Each pair of cameras' relative pose
@@ -209,10 +209,9 @@ def _pair_poses_planar(plane, xy, pixels, mask, K, rcond):
     ok = status == Status.OK
     determined = jnp.ones(ok.shape[0], bool)
     if K is None:
-        # OpenCV's start, not Zhang's closed form: with boards that face one camera each, its
-        # five unknowns came out 50-70 % off in focal length for some cameras (16 cameras x 250
-        # frames of a 6 x 8 board), from where no solve recovered; this start stayed within 40 %
-        # and the joint solve converged (RMS 0.422 px, 17 steps)
+        # not Zhang's closed form: with boards that face one camera each, its five unknowns
+        # came out 50-70 % off in focal length for some cameras (16 cameras x 250 frames of a
+        # 6 x 8 board), from where no solve recovered
         K, found = jax.vmap(_focal_lengths)(H, ok, pixels, mask & ok[..., None])
         determined = found & (jnp.sum(ok, 1) >= 2)
     pose = jax.vmap(jax.vmap(_pose, (None, 0, None, 0)), (0, 0, None, 0))
@@ -223,10 +222,20 @@ def _pair_poses_planar(plane, xy, pixels, mask, K, rcond):
 
 
 def _focal_lengths(H, ok, pixels, seen):
-    """OpenCV's initial intrinsics (`initIntrinsicParams2D`): the principal point `c` fixed (here
-    the centre of the box around the pixels seen), zero skew, and `1 / fx^2`, `1 / fy^2` from
-    Zhang's two constraints per view by least squares, taken in absolute value as OpenCV does;
-    found where finite."""
+    """Each camera's starting intrinsics from its homographies: the principal point `c` fixed
+    (the centre of the box around the pixels seen, as OpenCV's `initIntrinsicParams2D` takes
+    the image's), zero skew, and one focal length from each frame by Zhang's two constraints
+    (least squares in `1 / f^2`), the median over the frames that give one; found where there
+    is one.
+
+    The start before 2026-12-05, one least squares in `1 / fx^2`, `1 / fy^2` over all frames at
+    once (OpenCV's in outline, without its normalisation of each constraint), was pulled far off
+    by a few frames: 16 cameras x 250 frames of a 6 x 8 board (key 7), camera 10 at 10.1 times
+    its focal length, from where its own solve and the rig's wandered off (every camera
+    POOR_FIT); 20 such rigs of 16 and 64 cameras x 100 and 250 frames, up to 9.1 times (the
+    median camera 8 % off). The median: at most 25 % off on the same rigs (the median camera
+    5 %). OpenCV's own (`cv2.initCameraMatrix2D`, the image's centre) on key 7's frames: 1.05,
+    1.12 and 1.49 times for cameras 10, 13 and 2; the median 1.10, 1.07 and 1.14."""
     big = jnp.finfo(pixels.dtype).max
     seen = seen.reshape(-1)
     lo = jnp.min(jnp.where(seen[:, None], pixels.reshape(-1, 2), big), 0)
@@ -236,23 +245,23 @@ def _focal_lengths(H, ok, pixels, seen):
     T = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, scale]], pixels.dtype)
     T = T.at[0, 2].set(-c[0]).at[1, 2].set(-c[1])
     Hc = jnp.einsum("ij,fjk->fik", T, H)
-    Hc = Hc / jnp.linalg.norm(Hc, axis=(-2, -1), keepdims=True)
     h1, h2 = Hc[:, :, 0], Hc[:, :, 1]
-    A = jnp.stack(
+    # h1' w h2 = 0 and h1' w h1 = h2' w h2, with w = diag(1 / f^2, 1 / f^2, 1)
+    a = jnp.stack(
         [
-            jnp.stack([h1[:, 0] * h2[:, 0], h1[:, 1] * h2[:, 1]], -1),
-            jnp.stack([h1[:, 0] ** 2 - h2[:, 0] ** 2, h1[:, 1] ** 2 - h2[:, 1] ** 2], -1),
+            h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1],
+            h1[:, 0] ** 2 - h2[:, 0] ** 2 + h1[:, 1] ** 2 - h2[:, 1] ** 2,
         ],
-        1,
+        -1,
     )
-    b = -jnp.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], 1)
-    w = ok.astype(pixels.dtype)[:, None]
-    A, b = (A * w[..., None]).reshape(-1, 2), (b * w).reshape(-1)
-    ab = jnp.linalg.solve(A.T @ A + 1e-30 * jnp.eye(2, dtype=A.dtype), A.T @ b)
-    found = jnp.all(jnp.isfinite(ab) & (ab != 0))
-    f = scale / jnp.sqrt(jnp.where(found, jnp.abs(ab), 1.0))
+    b = -jnp.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], -1)
+    x = jnp.sum(a * b, -1) / jnp.sum(a * a, -1)  # 1 / f^2 per frame
+    gives = ok & (x > 0) & jnp.isfinite(x)
+    f = scale / jnp.sqrt(_dlt._masked_median(x, gives, sort=True))  # noqa: SLF001
+    found = jnp.isfinite(f)
+    f = jnp.where(found, f, 1.0)
     zero, one = jnp.zeros_like(c[0]), jnp.ones_like(c[0])
-    K = jnp.array([[f[0], zero, c[0]], [zero, f[1], c[1]], [zero, zero, one]])
+    K = jnp.array([[f, zero, c[0]], [zero, f, c[1]], [zero, zero, one]])
     return K, found
 
 
