@@ -200,6 +200,34 @@ def test_a_rig_whose_start_pulled_cameras_off_is_solved_at_once(monkeypatch):
     assert 0.40 < float(result.rms) < 0.43
 
 
+def test_own_frames_are_spread_evenly_and_distinct():
+    ok = np.zeros((3, 10), bool)
+    ok[0, [1, 2, 4, 5, 7, 8, 9]] = True  # 7 frames: 4 of them, evenly
+    ok[1, [3, 6]] = True  # 2 frames: both, then others
+    take = np.asarray(mc._rig._own_frames(jnp.asarray(ok), 4))
+    assert take[0].tolist() == [1, 2, 5, 8]  # its frames 0, 1.75, 3.5, 5.25, floored
+    assert take[1, :2].tolist() == [3, 6] and not ok[1, take[1, 2:]].any()
+    assert not ok[2, take[2]].any()
+    assert all(len(set(row)) == 4 for row in take.tolist())
+
+
+@pytest.mark.parametrize("target", ["board", "object"])
+def test_own_solves_from_some_of_the_frames_reach_the_same_rig(target, monkeypatch, request):
+    """Each camera's own solve from `OWN_FRAMES` of its frames (here 24 of its 20-60), the other
+    frames posed from their homographies with the refined intrinsics (a 3-D target: the DLT's
+    poses): the joint solve reaches the rig of own solves from every frame."""
+    rig = _rig(target)
+    every = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    monkeypatch.setattr(mc._rig, "OWN_FRAMES", 24)
+    mc._rig._start.clear_cache()  # (traced with the smaller cap, for this test only)
+    request.addfinalizer(mc._rig._start.clear_cache)
+    some = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    assert bool(some.ok.all()) and bool(some.converged)
+    a, b = np.asarray(some.cameras.center), np.asarray(every.cameras.center)
+    assert np.abs(a - b).max() < 1e-6 * np.abs(b).max()
+    assert abs(float(some.rms) - float(every.rms)) < 1e-9
+
+
 def test_a_camera_that_fits_nothing_is_not_let_back_in():
     """Its calibration against the rest of the rig fails too: it stays out (the garbage camera of
     the test above, 60 px of noise)."""
