@@ -17,7 +17,15 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _status, _validate
 from ._camera import LENSES, Camera, lens_of, placeholder
-from ._dlt import _design_matrix, _null_vector, _similarity
+from ._dlt import (
+    DEFAULT_MAX_RELATIVE_RMS,
+    _design_matrix,
+    _masked_median,
+    _null_vector,
+    _similarity,
+    check_relative_rms,
+    poor_fit,
+)
 from ._pipeline import CalibrationError
 from ._refine import (
     _RESULT_MESSAGES,
@@ -87,14 +95,20 @@ class PlanarCalibration(eqx.Module):
 
     @property
     def K(self) -> Float[Array, "3 3"]:
-        """The intrinsic matrix shared by every view."""
-        return self.camera.K[0]
+        """The intrinsic matrix shared by every view (the first calibrated view's: the views
+        that failed are NaN)."""
+        return self._shared(self.camera.K)
 
     @property
     def dist(self) -> Float[Array, " K"]:
         """The distortion shared by every view: `(k1, k2, p1, p2, k3)`, a fisheye's `(k1, k2,
         k3, k4)`."""
-        return self.camera.dist[0]
+        return self._shared(self.camera.dist)
+
+    def _shared(self, per_view):
+        return _validate.derived(
+            lambda xp, x, s: x[xp.argmax(s == Status.OK)], per_view, self.status
+        )
 
     @property
     def view_rms(self) -> Float[Array, " V"]:
@@ -223,6 +237,50 @@ def _intrinsics(H, ok, T, skew, rcond):
     return K, condition, determined
 
 
+def _focal_lengths(H, ok, pixels, seen):
+    """Each camera's starting intrinsics from its homographies: the principal point `c` fixed
+    (the centre of the box around the pixels seen, as OpenCV's `initIntrinsicParams2D` takes
+    the image's), zero skew, and one focal length from each frame by Zhang's two constraints
+    (least squares in `1 / f^2`), the median over the frames that give one; found where there
+    is one.
+
+    The start before 2026-12-05, one least squares in `1 / fx^2`, `1 / fy^2` over all frames at
+    once (OpenCV's in outline, without its normalisation of each constraint), was pulled far off
+    by a few frames: 16 cameras x 250 frames of a 6 x 8 board (key 7), camera 10 at 10.1 times
+    its focal length, from where its own solve and the rig's wandered off (every camera
+    POOR_FIT); 20 such rigs of 16 and 64 cameras x 100 and 250 frames, up to 9.1 times (the
+    median camera 8 % off). The median: at most 25 % off on the same rigs (the median camera
+    5 %). OpenCV's own (`cv2.initCameraMatrix2D`, the image's centre) on key 7's frames: 1.05,
+    1.12 and 1.49 times for cameras 10, 13 and 2; the median 1.10, 1.07 and 1.14."""
+    big = jnp.finfo(pixels.dtype).max
+    seen = seen.reshape(-1)
+    lo = jnp.min(jnp.where(seen[:, None], pixels.reshape(-1, 2), big), 0)
+    hi = jnp.max(jnp.where(seen[:, None], pixels.reshape(-1, 2), -big), 0)
+    c = 0.5 * (lo + hi)
+    scale = jnp.maximum(hi[0] - lo[0], hi[1] - lo[1])  # pixels in units of the box: conditioning
+    T = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, scale]], pixels.dtype)
+    T = T.at[0, 2].set(-c[0]).at[1, 2].set(-c[1])
+    Hc = jnp.einsum("ij,fjk->fik", T, H)
+    h1, h2 = Hc[:, :, 0], Hc[:, :, 1]
+    # h1' w h2 = 0 and h1' w h1 = h2' w h2, with w = diag(1 / f^2, 1 / f^2, 1)
+    a = jnp.stack(
+        [
+            h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1],
+            h1[:, 0] ** 2 - h2[:, 0] ** 2 + h1[:, 1] ** 2 - h2[:, 1] ** 2,
+        ],
+        -1,
+    )
+    b = -jnp.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], -1)
+    x = jnp.sum(a * b, -1) / jnp.sum(a * a, -1)  # 1 / f^2 per frame
+    gives = ok & (x > 0) & jnp.isfinite(x)
+    f = scale / jnp.sqrt(_masked_median(x, gives, sort=True))
+    found = jnp.isfinite(f)
+    f = jnp.where(found, f, 1.0)
+    zero, one = jnp.zeros_like(c[0]), jnp.ones_like(c[0])
+    K = jnp.array([[f, zero, c[0]], [zero, f, c[1]], [zero, zero, one]])
+    return K, found
+
+
 def _pose(K, H, plane, mask):
     """Zhang's eq. 10: r1 = l K^-1 h1, r2 = l K^-1 h2, t = l K^-1 h3, R orthonormalised."""
     M = jnp.linalg.solve(K, H)
@@ -233,6 +291,16 @@ def _pose(K, H, plane, mask):
     r1, r2, t = lam * M[:, 0], lam * M[:, 1], lam * M[:, 2]
     R = nearest_rotation(jnp.stack([r1, r2, jnp.cross(r1, r2)], -1))
     return R, t
+
+
+def _pinhole_rms(K, H, plane, pixels, mask):
+    """The RMS distance of the pixels `mask` of every view from the plane's points through `K`
+    and each view's pose from its homography (`_pose`; no distortion); NaN for a NaN `K`."""
+    R, t = jax.vmap(_pose, (None, 0, None, 0))(K, H, plane, mask)
+    x = jnp.einsum("vij,nj->vni", R[..., :2], plane) + t[:, None]
+    uv = jnp.einsum("ij,vnj->vni", K, x)
+    square = jnp.sum((uv[..., :2] / uv[..., 2:] - pixels) ** 2, -1)
+    return jnp.sqrt(jnp.sum(jnp.where(mask, square, 0.0)) / jnp.maximum(jnp.sum(mask), 1))
 
 
 @functools.partial(_buckets.jit, static_argnames="rcond")
@@ -248,7 +316,15 @@ def _closed_form(world, plane, pixels, mask, skew, rcond: float):
     seen = mask & ok[:, None]
     T, _, _ = _similarity(pixels.reshape(-1, 2), seen.reshape(-1).astype(pixels.dtype))
     K, condition, determined = _intrinsics(H, ok, T, skew, rcond)
-    status = jnp.where(ok & ~determined, Status.DEGENERATE, status).astype(jnp.int32)
+    # Zhang's K against one focal length, the median of the views' own (`_focal_lengths`): the
+    # one whose poses reproject the views better. One view of a few points, its homography
+    # poorly determined, can leave Zhang's B indefinite (no K) or far off
+    median, found = _focal_lengths(H, ok, pixels, seen)
+    zhang = determined & ~(
+        _pinhole_rms(median, H, plane_xy, pixels, seen) < _pinhole_rms(K, H, plane_xy, pixels, seen)
+    )
+    K = jnp.where(zhang, K, median)
+    status = jnp.where(ok & ~(zhang | found), Status.DEGENERATE, status).astype(jnp.int32)
     R, t = jax.vmap(_pose, (None, 0, None, 0))(K, H, plane_xy, mask)
     # back from the plane's frame to the world's: x_cam = R (A X + b) + t
     R, t = R @ plane.R, jnp.einsum("vij,j->vi", R, plane.t) + t
@@ -411,14 +487,26 @@ def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
     return mask(tuple(n for n in names if n not in POSE)), mask(POSE)
 
 
+# A view is left out (POOR_FIT) where its RMS exceeds `max_relative_rms` of its pixels' spread and
+# this many times the median view's: 40 views of a 6 x 8 board (`board_rig` key 0, camera 3), one
+# of 5 points whose pose the solve left in another minimum at 42.8 px, which pulled k1 from -0.003
+# to -0.156 and the focal length 28 % off (the other views at 0.4 px). The spread alone flags
+# good views of a target small in the image (a fisheye's: 0.43 px, as the others).
+_FAR_WORSE = 3.0
+
+
 @_buckets.jit
-def _finish(closed, camera, world, pixels, mask, ok):
-    """NaN for the views that failed; the report per view and the pooled RMS of the others."""
+def _finish(closed, camera, world, pixels, mask, ok, max_relative_rms):
+    """NaN for the views that failed; the report per view, the pooled RMS of the others, and
+    the views `ok` that fit out of all proportion both to their image of the target
+    (`poor_fit`) and to the other views (`_FAR_WORSE` times their median RMS)."""
     closed, camera = _nan_where(~ok, closed), _nan_where(~ok, camera)
     report = compute_report(camera, world, pixels, mask & ok[:, None])
     n = jnp.sum(report.n_points)
     rms = jnp.sqrt(jnp.sum(report.residuals**2) / jnp.maximum(n, 1))
-    return closed, camera, report, rms
+    poor = poor_fit(report.rms, pixels, mask & ok[:, None], max_relative_rms, sort=True)
+    worse = report.rms > _FAR_WORSE * _masked_median(report.rms, ok, sort=True)
+    return closed, camera, report, rms, ok & poor & worse
 
 
 # ------------------------------------------------------------------------------ validation
@@ -485,6 +573,7 @@ def calibrate_planar(
     rcond: float | None = None,
     lens: str = "pinhole",
     image_size: tuple[int, int] | None = None,
+    max_relative_rms: float = DEFAULT_MAX_RELATIVE_RMS,
 ) -> PlanarCalibration:
     """Calibrate one camera from several views of a planar target, by Zhang's method.
 
@@ -492,13 +581,20 @@ def calibrate_planar(
        one vmapped call; masks as for `mvcalib.dlt`.
     2. The intrinsics in closed form: each homography gives two linear equations in the
        symmetric `B = K^-T K^-1` (Zhang's eqs. 8–9), solved by SVD; K from the Cholesky factor
-       of B.
+       of B. Against it, one focal length, the median of each view's own (the principal point
+       at the centre of the pixels seen, zero skew): the camera starts from the one whose
+       poses (step 3) reproject the views better. (One view of a few points, its homography
+       poorly determined, can leave B indefinite, or K far off.)
     3. Each view's pose from `K^-1 H` (eq. 10), the rotation made orthonormal by
        `mvcalib.nearest_rotation`.
     4. With `refine=True` (default), one Levenberg–Marquardt problem over the shared intrinsics,
        the distortion and every view's pose (what `mvcalib.refine_rig` with
        `shared_intrinsics=True` does, with the views as the rig and the target as its fixed
        world, compiled once for any choice of free parameters), starting from zero distortion.
+       Outside a trace, a view whose refined fit is out of all proportion (RMS above
+       `max_relative_rms` of its pixels' spread and 3 times the median view's: a pose left in
+       another minimum, or wrong points) is `Status.POOR_FIT`, left out, and the rest solved
+       again, the worst view first, until none is left.
 
     The model is `Camera.project`: distortion `(k1, k2, p1, p2, k3)` in normalised coordinates
     before `K`, so Zhang's radial model `x (1 + k1 r^2 + k2 r^4)` is `distortion=("k1", "k2")`,
@@ -534,6 +630,8 @@ def calibrate_planar(
       (`cv2.fisheye.calibrate` cannot take them). `homographies` then map the plane to the
       closed form's rays, and `condition` is the largest of the views' homographies' condition
       numbers (largest over second-smallest singular value).
+    - `max_relative_rms`: step 4's bar for a view's RMS, as a fraction of its pixels' spread
+      (as for `mvcalib.calibrate`); default 0.05, `inf` turns the check off.
 
     **Returns:** a `PlanarCalibration`.
 
@@ -600,33 +698,56 @@ def calibrate_planar(
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
     solver = default_solver(dtype) if solver is None else solver
     refine_options = (free_shared, free_pose, loss, solver, int(max_steps))
-    closed_form = functools.partial(
-        _closed_form, world, plane, pixels, mask, skew, rcond, quick=quick
-    )
+    closed_form = functools.partial(_closed_form, world, plane, pixels, skew=skew, rcond=rcond,
+                                    quick=quick)  # fmt: skip
+    max_relative_rms = check_relative_rms(max_relative_rms)
     if xp is np:  # concrete: the programs compile on other threads, the later ones traced meanwhile
         views = placeholder(mask.shape[:1], dtype, lens)
         some = np.zeros(mask.shape[:1], bool)
         if lens != "fisheye":
-            _buckets.ahead(closed_form)
+            _buckets.ahead(closed_form, mask)
         if refine:
             _buckets.ahead(_refine_views, views, some, world, pixels, mask, *refine_options,
                            quick=quick)  # fmt: skip
-        _buckets.ahead(_finish, views, views, world, pixels, mask, some, quick=quick)
-    if lens == "fisheye":
-        H, seed, status, condition = _fisheye_seed(world, plane, pixels, mask, image_size, rcond)
-        seed = jax.tree_util.tree_map(lambda x: x.astype(dtype), seed)
-    else:
-        H, seed, status, condition = closed_form()
-    ok = _status.ok(status)
-    if refine:
-        camera, iterations, result = _refine_views(
-            seed, ok, world, pixels, mask, *refine_options, quick=quick
-        )
-    else:
-        iterations = result = np.zeros((), np.int32)
-    closed, camera, report, rms = _finish(
-        seed, camera if refine else seed, world, pixels, mask, ok, quick=quick
-    )
+        _buckets.ahead(_finish, views, views, world, pixels, mask, some, max_relative_rms,
+                       quick=quick)  # fmt: skip
+
+    def solve(mask):
+        if lens == "fisheye":
+            H, seed, status, condition = _fisheye_seed(
+                world, plane, pixels, mask, image_size, rcond
+            )
+            seed = jax.tree_util.tree_map(lambda x: x.astype(dtype), seed)
+        else:
+            H, seed, status, condition = closed_form(mask)
+        ok = _status.ok(status)
+        if refine:
+            camera, iterations, result = _refine_views(
+                seed, ok, world, pixels, mask, *refine_options, quick=quick
+            )
+        else:
+            camera, iterations, result = seed, np.zeros((), np.int32), np.zeros((), np.int32)
+        finished = _finish(seed, camera, world, pixels, mask, ok, max_relative_rms, quick=quick)
+        return H, status, condition, iterations, result, *finished
+
+    H, status, condition, iterations, result, closed, camera, report, rms, poor = solve(mask)
+    # Outside a trace, a refined view that fits out of all proportion (its pose in another
+    # minimum, or its points wrong) pulled the intrinsics: the worst such view is left out and
+    # the rest solved again, by the same programs, until none is left (one at a time: the
+    # views it pulled may fit once it is gone); where nothing would be left, the first answer
+    # stays. (The closed form's poses are no fit: a view of a few points reprojects poorly from
+    # its homography's pose alone.)
+    dropped = np.zeros(mask.shape[:1], bool)
+    while xp is np and refine and np.asarray(poor).any():
+        new = np.arange(len(dropped)) == np.argmax(np.where(poor, report.rms, -np.inf))
+        dropped |= new
+        again = solve(mask & ~dropped[:, None])
+        if not np.asarray(_status.ok(again[1])).any():
+            break
+        # (the homographies are each view's own: the first solve's stay, the dropped views' too)
+        _, status, condition, iterations, result, closed, camera, report, rms, poor = again
+    if dropped.any():
+        status = np.where(dropped, Status.POOR_FIT, np.asarray(status)).astype(np.int32)
     return PlanarCalibration(
         camera=camera,
         closed_form=closed,

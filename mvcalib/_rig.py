@@ -41,7 +41,13 @@ from ._camera import (
     unit_camera,
     where_cameras,
 )
-from ._planar import MIN_PLANE_POINTS, _homography_kernel, _plane_frame, _pose
+from ._planar import (
+    MIN_PLANE_POINTS,
+    _focal_lengths,
+    _homography_kernel,
+    _plane_frame,
+    _pose,
+)
 from ._refine import (
     _MIN_DAMPING,
     _RESULT_MESSAGES,
@@ -229,50 +235,6 @@ def _planar_poses(plane, xy, K, H, mask):
     R, t = pose(K, H, xy, mask)
     # from the plane's frame back to the target's: x_cam = R (A X + b) + t
     return R @ plane.R, jnp.einsum("cfij,j->cfi", R, plane.t) + t
-
-
-def _focal_lengths(H, ok, pixels, seen):
-    """Each camera's starting intrinsics from its homographies: the principal point `c` fixed
-    (the centre of the box around the pixels seen, as OpenCV's `initIntrinsicParams2D` takes
-    the image's), zero skew, and one focal length from each frame by Zhang's two constraints
-    (least squares in `1 / f^2`), the median over the frames that give one; found where there
-    is one.
-
-    The start before 2026-12-05, one least squares in `1 / fx^2`, `1 / fy^2` over all frames at
-    once (OpenCV's in outline, without its normalisation of each constraint), was pulled far off
-    by a few frames: 16 cameras x 250 frames of a 6 x 8 board (key 7), camera 10 at 10.1 times
-    its focal length, from where its own solve and the rig's wandered off (every camera
-    POOR_FIT); 20 such rigs of 16 and 64 cameras x 100 and 250 frames, up to 9.1 times (the
-    median camera 8 % off). The median: at most 25 % off on the same rigs (the median camera
-    5 %). OpenCV's own (`cv2.initCameraMatrix2D`, the image's centre) on key 7's frames: 1.05,
-    1.12 and 1.49 times for cameras 10, 13 and 2; the median 1.10, 1.07 and 1.14."""
-    big = jnp.finfo(pixels.dtype).max
-    seen = seen.reshape(-1)
-    lo = jnp.min(jnp.where(seen[:, None], pixels.reshape(-1, 2), big), 0)
-    hi = jnp.max(jnp.where(seen[:, None], pixels.reshape(-1, 2), -big), 0)
-    c = 0.5 * (lo + hi)
-    scale = jnp.maximum(hi[0] - lo[0], hi[1] - lo[1])  # pixels in units of the box: conditioning
-    T = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, scale]], pixels.dtype)
-    T = T.at[0, 2].set(-c[0]).at[1, 2].set(-c[1])
-    Hc = jnp.einsum("ij,fjk->fik", T, H)
-    h1, h2 = Hc[:, :, 0], Hc[:, :, 1]
-    # h1' w h2 = 0 and h1' w h1 = h2' w h2, with w = diag(1 / f^2, 1 / f^2, 1)
-    a = jnp.stack(
-        [
-            h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1],
-            h1[:, 0] ** 2 - h2[:, 0] ** 2 + h1[:, 1] ** 2 - h2[:, 1] ** 2,
-        ],
-        -1,
-    )
-    b = -jnp.stack([h1[:, 2] * h2[:, 2], h1[:, 2] ** 2 - h2[:, 2] ** 2], -1)
-    x = jnp.sum(a * b, -1) / jnp.sum(a * a, -1)  # 1 / f^2 per frame
-    gives = ok & (x > 0) & jnp.isfinite(x)
-    f = scale / jnp.sqrt(_dlt._masked_median(x, gives, sort=True))  # noqa: SLF001
-    found = jnp.isfinite(f)
-    f = jnp.where(found, f, 1.0)
-    zero, one = jnp.zeros_like(c[0]), jnp.ones_like(c[0])
-    K = jnp.array([[f, zero, c[0]], [zero, f, c[1]], [zero, zero, one]])
-    return K, found
 
 
 def _pair_poses_object(target, pixels, mask, K, rcond):

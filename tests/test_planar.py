@@ -175,6 +175,57 @@ def test_a_degenerate_view_is_flagged_and_the_others_still_calibrate(distorted):
     assert int(out.report.n_points[2]) == 0 and np.isfinite(float(out.rms))
     with pytest.raises(mc.CalibrationError, match="view 2: degenerate"):
         out.raise_if_failed()
+    # the shared intrinsics are the first calibrated view's, not view 0's (NaN until 2026-12-05)
+    line = mask.copy()
+    line[0, 16:] = False
+    out = mc.calibrate_planar(WORLD, pixels, line)
+    assert int(out.status[0]) == mc.Status.DEGENERATE
+    assert relative(out.K, K_TRUE) < 1e-8 and relative(out.dist, DIST) < 1e-8
+
+
+def _partial_views():
+    """40 views of a 6 x 8 board by one camera of a synthetic rig (`board_rig` key 0, camera 3;
+    0.3 px of noise, k1 k2), the board cut by the image's edge in some: view 7 sees one row of
+    it (no homography) and view 30 five points (4 in a row), whose homography the noise leaves
+    poorly determined. OpenCV's `calibrateCamera` refuses these views (its homography of view
+    7 fails); without view 7, its focal length of camera 1 of key 3 comes out 1.8 % off."""
+    import jax
+
+    rig = mc.synthetic.board_rig(
+        jax.random.key(0), 16, 250, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
+    )
+    mask = np.asarray(rig.mask)[3]
+    frames = np.flatnonzero(mask.sum(-1) >= 4)[:40]
+    pixels = np.where(mask[frames, :, None], np.asarray(rig.pixels)[3, frames], np.nan)
+    return rig, np.asarray(rig.target), pixels, mask[frames]
+
+
+def test_a_view_of_a_few_points_does_not_break_the_closed_form():
+    """View 30 alone left Zhang's B indefinite: no K, every view DEGENERATE (until 2026-12-05).
+    Zhang's K now stands against one focal length, the median of the views' own, and the one
+    whose poses reproject the views better starts the camera: here the median, within 5 %."""
+    rig, target, pixels, mask = _partial_views()
+    out = mc.calibrate_planar(target, pixels, mask, refine=False)
+    status = np.asarray(out.status)
+    assert status[7] == mc.Status.DEGENERATE and np.all(np.delete(status, 7) == mc.Status.OK)
+    assert abs(float(out.K[0, 0]) / float(rig.cameras.alpha_u[3]) - 1) < 0.05
+
+
+def test_a_view_that_fits_out_of_all_proportion_is_left_out():
+    """Refined with every view, view 30's pose ended in another minimum at 42.8 px RMS and
+    pulled k1 from -0.003 to -0.156, the focal length 28 % off, every view OK at 2.8 px
+    (until 2026-12-05). It is POOR_FIT now, and the camera the one calibrated without it."""
+    rig, target, pixels, mask = _partial_views()
+    out = mc.calibrate_planar(target, pixels, mask)
+    status = np.asarray(out.status)
+    assert status[30] == mc.Status.POOR_FIT and status[7] == mc.Status.DEGENERATE
+    assert np.all(np.delete(status, [7, 30]) == mc.Status.OK)
+    assert np.isnan(np.asarray(out.camera.t[30])).all() and 0.38 < float(out.rms) < 0.43
+    assert abs(float(out.K[0, 0]) / float(rig.cameras.alpha_u[3]) - 1) < 5e-3
+    assert abs(float(out.dist[0]) - float(rig.cameras.dist[3, 0])) < 0.01
+    keep = np.delete(np.arange(40), [7, 30])
+    without = mc.calibrate_planar(target, pixels[keep], mask[keep])
+    assert relative(np.asarray(out.K), np.asarray(without.K)) < 1e-8
 
 
 # ------------------------------------------------------------------------------ OpenCV
