@@ -56,6 +56,11 @@ _MESSAGES = {
         "views together do not determine the intrinsics (e.g. every view parallel to the others)"
     ),
     Status.NON_FINITE: "NaN or inf among the visible points",
+    Status.POOR_FIT: (
+        "poor fit: the refined view's RMS exceeds `max_relative_rms` (default 5 %) of its pixels' "
+        "spread and 3 times the median view's (its pose in another minimum, or wrong points); "
+        "left out, the camera calibrated from the other views"
+    ),
 }
 
 
@@ -63,10 +68,10 @@ class PlanarCalibration(eqx.Module):
     """The result of `calibrate_planar`: one camera seen in several views of a plane.
 
     - `camera`: a rig of `V` views, `(V,)`: the same intrinsics and distortion in every view
-      (`camera.K[0]`, `camera.dist[0]`; also `K` and `dist` below), the target's pose per view.
-      Views that failed are NaN.
-    - `closed_form`: the same rig from Zhang's closed-form solution, before refinement (pinhole,
-      no distortion); equal to `camera` when `refine=False`.
+      (`K` and `dist` below), the target's pose per view. Views that failed are NaN.
+    - `closed_form`: the same rig from the closed form, before refinement (Zhang's, or one
+      focal length where that reprojects the views better; pinhole, no distortion); equal to
+      `camera` when `refine=False`.
     - `homographies`: `(V, 3, 3)`, unit Frobenius norm, mapping the target's plane coordinates
       `(x, y, 1)` (in the frame `plane`) to pixels.
     - `plane`: the rigid transform from world coordinates to the plane's frame, in which the

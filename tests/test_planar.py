@@ -221,6 +221,9 @@ def test_a_view_that_fits_out_of_all_proportion_is_left_out():
     assert status[30] == mc.Status.POOR_FIT and status[7] == mc.Status.DEGENERATE
     assert np.all(np.delete(status, [7, 30]) == mc.Status.OK)
     assert np.isnan(np.asarray(out.camera.t[30])).all() and 0.38 < float(out.rms) < 0.43
+    assert out.messages()[30].startswith("poor fit")
+    with pytest.raises(mc.CalibrationError, match="view 30: poor fit"):
+        out.raise_if_failed()
     assert abs(float(out.K[0, 0]) / float(rig.cameras.alpha_u[3]) - 1) < 5e-3
     assert abs(float(out.dist[0]) - float(rig.cameras.dist[3, 0])) < 0.01
     keep = np.delete(np.arange(40), [7, 30])
