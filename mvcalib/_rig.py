@@ -1221,7 +1221,15 @@ def calibrate_rig(
             parameter_names=tuple(names[i] for i in free),
             **out,
         )
-        if concrete and (status := int(np.asarray(result.status)[solve_reference])) != Status.OK:
+        statuses = np.asarray(result.status) if concrete else None
+        if concrete and (statuses == Status.POOR_FIT).all():
+            raise ValueError(
+                f"the rig's joint solve failed: every camera reprojects its points with an RMS "
+                f"above `max_relative_rms` of their spread (RMS {float(result.rms):.3g} px after "
+                f"{int(result.iterations)} steps). Check that the detections match the target's "
+                "points (ids, order, units), or start from known `cameras=`."
+            )
+        if concrete and (status := int(statuses[solve_reference])) != Status.OK:
             raise ValueError(
                 f"the reference camera {solve_reference} cannot be calibrated: "
                 f"{Status(status).message}. Choose another `reference`."

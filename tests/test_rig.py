@@ -200,6 +200,15 @@ def test_a_rig_whose_start_pulled_cameras_off_is_solved_at_once(monkeypatch):
     assert 0.40 < float(result.rms) < 0.43
 
 
+def test_a_solve_that_fails_every_camera_says_so(monkeypatch):
+    """Every camera POOR_FIT (here by a stand-in for the first solve): not "choose another
+    reference", which could not help, but what failed and what to check."""
+    rig = _rig(noise=0.3)
+    _first_solve_altered(monkeypatch, "status", lambda s: s.at[:].set(mc.Status.POOR_FIT))
+    with pytest.raises(ValueError, match="every camera reprojects its points"):
+        mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+
+
 def test_own_frames_are_spread_evenly_and_distinct():
     ok = np.zeros((3, 10), bool)
     ok[0, [1, 2, 4, 5, 7, 8, 9]] = True  # 7 frames: 4 of them, evenly
