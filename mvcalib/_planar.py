@@ -456,7 +456,14 @@ def _planar_residuals(y, args):
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
     """Refine the closed-form rig. Views that failed (`~ok`) get a harmless seed and no points
-    (`_finish` puts NaN in their place)."""
+    (`_finish` puts NaN in their place). A redescending loss (`Cauchy`) starts from the answer
+    of `Huber` of its scale, as `calibrate_rig`'s solves do."""
+    before = 0
+    if isinstance(loss, Cauchy):
+        convex = Huber(loss.scale)
+        camera, before, _ = _refine_views(
+            camera, ok, world, pixels, mask, free_shared, free_pose, convex, solver, max_steps
+        )
     eye = jnp.broadcast_to(jnp.eye(3, dtype=camera.R.dtype), camera.R.shape)
     camera = eqx.tree_at(
         lambda c: (c.R, c.t),
@@ -482,7 +489,8 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     sol = optx.least_squares(
         _planar_residuals, solver, y0, args, max_steps=max_steps, adjoint=adjoint, throw=False
     )
-    return _planar_unknowns(sol.value, args), sol.stats["num_steps"], sol.result._value  # noqa: SLF001
+    steps = before + sol.stats["num_steps"]
+    return _planar_unknowns(sol.value, args), steps, sol.result._value  # noqa: SLF001
 
 
 def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
@@ -501,16 +509,20 @@ _FAR_WORSE = 3.0
 
 
 @_buckets.jit
-def _finish(closed, camera, world, pixels, mask, ok, max_relative_rms):
+def _finish(closed, camera, world, pixels, mask, ok, max_relative_rms, loss):
     """NaN for the views that failed; the report per view, the pooled RMS of the others, and
     the views `ok` that fit out of all proportion both to their image of the target
-    (`poor_fit`) and to the other views (`_FAR_WORSE` times their median RMS)."""
+    (`poor_fit`) and to the other views (`_FAR_WORSE` times their median RMS), over the points
+    a robust `loss` kept (within 3 of its scales: one wild point is its business)."""
     closed, camera = _nan_where(~ok, closed), _nan_where(~ok, camera)
     report = compute_report(camera, world, pixels, mask & ok[:, None])
     n = jnp.sum(report.n_points)
     rms = jnp.sqrt(jnp.sum(report.residuals**2) / jnp.maximum(n, 1))
-    poor = poor_fit(report.rms, pixels, mask & ok[:, None], max_relative_rms, sort=True)
-    worse = report.rms > _FAR_WORSE * _masked_median(report.rms, ok, sort=True)
+    square = jnp.sum(report.residuals**2, -1)
+    kept = report.mask & (square <= (jnp.inf if loss is None else 3.0 * loss.scale) ** 2)
+    view_rms = jnp.sqrt(jnp.sum(jnp.where(kept, square, 0.0), -1) / jnp.maximum(kept.sum(-1), 1))
+    poor = poor_fit(view_rms, pixels, kept, max_relative_rms, sort=True)
+    worse = view_rms > _FAR_WORSE * _masked_median(view_rms, ok, sort=True)
     return closed, camera, report, rms, ok & poor & worse
 
 
@@ -597,9 +609,10 @@ def calibrate_planar(
        `shared_intrinsics=True` does, with the views as the rig and the target as its fixed
        world, compiled once for any choice of free parameters), starting from zero distortion.
        Outside a trace, a view whose refined fit is out of all proportion (RMS above
-       `max_relative_rms` of its pixels' spread and 3 times the median view's: a pose left in
-       another minimum, or wrong points) is `Status.POOR_FIT`, left out, and the rest solved
-       again, the worst view first, until none is left.
+       `max_relative_rms` of its pixels' spread and 3 times the median view's, over the points
+       a robust `loss` kept: a pose left in another minimum, or wrong points) is
+       `Status.POOR_FIT`, left out, and the rest solved again, the worst view first, until none
+       is left.
 
     The model is `Camera.project`: distortion `(k1, k2, p1, p2, k3)` in normalised coordinates
     before `K`, so Zhang's radial model `x (1 + k1 r^2 + k2 r^4)` is `distortion=("k1", "k2")`,
@@ -714,7 +727,7 @@ def calibrate_planar(
         if refine:
             _buckets.ahead(_refine_views, views, some, world, pixels, mask, *refine_options,
                            quick=quick)  # fmt: skip
-        _buckets.ahead(_finish, views, views, world, pixels, mask, some, max_relative_rms,
+        _buckets.ahead(_finish, views, views, world, pixels, mask, some, max_relative_rms, loss,
                        quick=quick)  # fmt: skip
 
     def solve(mask):
@@ -732,7 +745,9 @@ def calibrate_planar(
             )
         else:
             camera, iterations, result = seed, np.zeros((), np.int32), np.zeros((), np.int32)
-        finished = _finish(seed, camera, world, pixels, mask, ok, max_relative_rms, quick=quick)
+        finished = _finish(
+            seed, camera, world, pixels, mask, ok, max_relative_rms, loss, quick=quick
+        )
         return H, status, condition, iterations, result, *finished
 
     H, status, condition, iterations, result, closed, camera, report, rms, poor = solve(mask)
