@@ -298,14 +298,16 @@ def _pose(K, H, plane, mask):
     return R, t
 
 
-def _pinhole_rms(K, H, plane, pixels, mask):
-    """The RMS distance of the pixels `mask` of every view from the plane's points through `K`
-    and each view's pose from its homography (`_pose`; no distortion); NaN for a NaN `K`."""
+def _posed(K, H, plane, pixels, mask, seen):
+    """Each view's pose from its homography and `K` (`_pose`, the sign from the points `mask`),
+    and the RMS distance of the pixels `seen` of every view from the plane's points through
+    them (no distortion; NaN for a NaN `K`)."""
     R, t = jax.vmap(_pose, (None, 0, None, 0))(K, H, plane, mask)
     x = jnp.einsum("vij,nj->vni", R[..., :2], plane) + t[:, None]
     uv = jnp.einsum("ij,vnj->vni", K, x)
     square = jnp.sum((uv[..., :2] / uv[..., 2:] - pixels) ** 2, -1)
-    return jnp.sqrt(jnp.sum(jnp.where(mask, square, 0.0)) / jnp.maximum(jnp.sum(mask), 1))
+    rms = jnp.sqrt(jnp.sum(jnp.where(seen, square, 0.0)) / jnp.maximum(jnp.sum(seen), 1))
+    return R, t, rms
 
 
 @functools.partial(_buckets.jit, static_argnames="rcond")
@@ -325,12 +327,11 @@ def _closed_form(world, plane, pixels, mask, skew, rcond: float):
     # one whose poses reproject the views better. One view of a few points, its homography
     # poorly determined, can leave Zhang's B indefinite (no K) or far off
     median, found = _focal_lengths(H, ok, pixels, seen)
-    zhang = determined & ~(
-        _pinhole_rms(median, H, plane_xy, pixels, seen) < _pinhole_rms(K, H, plane_xy, pixels, seen)
-    )
-    K = jnp.where(zhang, K, median)
+    Rz, tz, rms_zhang = _posed(K, H, plane_xy, pixels, mask, seen)
+    Rm, tm, rms_median = _posed(median, H, plane_xy, pixels, mask, seen)
+    zhang = determined & ~(rms_median < rms_zhang)
+    K, R, t = (jnp.where(zhang, a, b) for a, b in ((K, median), (Rz, Rm), (tz, tm)))
     status = jnp.where(ok & ~(zhang | found), Status.DEGENERATE, status).astype(jnp.int32)
-    R, t = jax.vmap(_pose, (None, 0, None, 0))(K, H, plane_xy, mask)
     # back from the plane's frame to the world's: x_cam = R (A X + b) + t
     R, t = R @ plane.R, jnp.einsum("vij,j->vi", R, plane.t) + t
     V = pixels.shape[0]
