@@ -322,6 +322,7 @@ def _initialise(
     cameras,
     reference,
     rcond,
+    max_relative_rms,
     *,
     planar,
     given,
@@ -365,6 +366,7 @@ def _initialise(
         dist=dist,
         lens=cameras.lens if given else "pinhole",
     )
+    solved = ok  # the (camera, frame) pairs of each camera's own solve
     if not given and F <= OWN_FRAMES:
         # each camera alone with its own frames: its intrinsics, distortion and the target's
         # poses (the closed form neglects the distortion, which the rig's cameras share no frames
@@ -394,7 +396,15 @@ def _initialise(
         rows = jnp.arange(C)[:, None]
         Rp = Rp.at[rows, take].set(jnp.where(used[..., None, None], Rs, pick(Rp)))
         tp = tp.at[rows, take].set(jnp.where(used[..., None], ts, pick(tp)))
+        solved = jnp.zeros_like(ok).at[rows, take].set(used)
     Rrel, trel, shared = _relative_poses(Rp, tp, ok)
+    if not given:
+        # A camera that cannot fit its own frames, each with a pose of its own (`poor_fit`, as
+        # the joint solve judges a camera), links others only where nothing else does: its pairs
+        # weigh less than one shared frame. (Left out of the chain altogether, a good camera
+        # whose own solve wandered off, which the joint solve brings back, cost a second solve.)
+        lost = _own_fit(own, Rp, tp, solved, target, pixels, mask, max_relative_rms)
+        shared = jnp.where(lost[:, None] | lost[None, :], shared / (F + 1), shared)
     linked, R, t = _chain(Rrel, trel, shared, reference)
     if given and not any(i in POSE_INDICES for i in free):  # the poses held: the given ones
         linked, R, t = jnp.ones_like(linked), cameras.R, cameras.t
@@ -420,6 +430,22 @@ def _initialise(
     tf = jnp.where(frame_ok[:, None], tf, 0.0)
     initial = eqx.tree_at(lambda c: (c.R, c.t), own, (R, t))
     return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance
+
+
+def _own_fit(own, Rp, tp, solved, target, pixels, mask, max_relative_rms):
+    """Whether each camera's RMS over the points of the frames `solved`, with its own poses
+    `Rp`, `tp` (`(C, F, ...)`, target to camera), is a poor fit (`_dlt.poor_fit`)."""
+    C, F, N = mask.shape
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=Rp.dtype), (C, 3, 3))
+    alone = eqx.tree_at(lambda c: (c.R, c.t), own, (eye, jnp.zeros((C, 3), Rp.dtype)))
+    points = jnp.einsum("cfij,nj->cfni", Rp, target) + tp[:, :, None]
+    used = mask & solved[..., None]
+    projected = jax.vmap(lambda cam, x: cam.project(x))(alone, points)
+    square = jnp.sum(jnp.where(used[..., None], projected - pixels, 0.0) ** 2, -1)
+    rms = jnp.sqrt(jnp.sum(square, (1, 2)) / jnp.maximum(jnp.sum(used, (1, 2)), 1))
+    flat = lambda x: x.reshape((C, F * N) + x.shape[3:])  # noqa: E731
+    poor = _dlt.poor_fit(rms, flat(pixels), flat(used), max_relative_rms, True)
+    return poor & jnp.any(used, (1, 2))
 
 
 def _own_frames(ok, n: int):
@@ -910,8 +936,8 @@ def _uncertainty(y, args, n: _Normal, free):
 # Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s as one
 # program, 2.6-3.0 s as two.
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _start(target, plane, pixels, mask, cameras, reference, rcond, *, planar, given, free, loss,
-           max_steps):  # fmt: skip
+def _start(target, plane, pixels, mask, cameras, reference, rcond, max_relative_rms, *, planar,
+           given, free, loss, max_steps):  # fmt: skip
     """`_initialise`, compiled: the rig before the joint solve (no derivatives flow through it)."""
     return jax.lax.stop_gradient(
         _initialise(
@@ -922,6 +948,7 @@ def _start(target, plane, pixels, mask, cameras, reference, rcond, *, planar, gi
             cameras,
             reference,
             rcond,
+            max_relative_rms,
             planar=planar,
             given=given,
             free=free,
@@ -1206,6 +1233,8 @@ def calibrate_rig(
         f"{int(np.sum(skipped)) if concrete else '?'} pairs skipped"
     )
 
+    relative_rms = _dlt.check_relative_rms(max_relative_rms)
+
     def solve(mask, observed):
         # with reference="target", the solve's reference is the camera that saw the most frames
         if not isinstance(reference, str):
@@ -1217,13 +1246,12 @@ def calibrate_rig(
         quick = C * F * N <= QUICK_SIZE
         options = dict(free=free, loss=loss, max_steps=max_steps, quick=quick)
         start = functools.partial(
-            _start, points, plane, image, mask, cameras, solve_reference, rcond,
+            _start, points, plane, image, mask, cameras, solve_reference, rcond, relative_rms,
             planar=planar, given=cameras is not None, **options,
         )  # fmt: skip
         joint = functools.partial(
             _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
-            reference=solve_reference, max_relative_rms=_dlt.check_relative_rms(max_relative_rms),
-            **options,
+            reference=solve_reference, max_relative_rms=relative_rms, **options,
         )  # fmt: skip
         if concrete:  # both programs compile on other threads, the second traced meanwhile
             if (start_like := _buckets.ahead(start)) is not None:
