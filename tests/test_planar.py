@@ -252,7 +252,7 @@ def test_robust_loss_with_wild_detections_keeps_every_view(loss):
     and the solve converges. A Cauchy solve starts from the Huber answer: from the closed form
     it stopped unconverged at 256 steps (until 2026-12-05). The focal length comes out 0.04 %
     (Cauchy) and 0.11 % (Huber) off, 0.10 % without the wild points. Until 2026-12-05 the
-    homographies took the wild points at full weight, two views started up to 60 degrees off and
+    homographies took the wild points at full weight, two views started 118 and 60 degrees off and
     ended in another minimum: 0.5 % and 1.4 %."""
     import jax
 
