@@ -294,6 +294,17 @@ def test_robust_loss_keeps_the_accuracy_with_one_percent_wild_detections(loss):
     assert not np.asarray(result.inliers)[tuple(wild.T)].any()  # every wild one is flagged
 
 
+def _wild(pixels, mask, seed):
+    """`pixels` with 1 % of the visible ones moved by 50 px, in random directions."""
+    rng = np.random.default_rng(seed)
+    pixels = pixels.copy()
+    where = np.argwhere(mask)
+    wild = where[rng.choice(len(where), len(where) // 100, replace=False)]
+    d = rng.normal(size=(len(wild), 2))
+    pixels[tuple(wild.T)] += 50 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    return pixels
+
+
 def test_a_frame_that_fits_nothing_under_a_robust_loss_is_left_out():
     """16 x 250 (key 1), 1 % of the corners moved by 50 px, `Huber(1.0)`: frame 37 (cameras 11
     and 12, 4 and 6 points) ended at 224 and 35 px, and camera 11 in frame 224 (5 points) at
@@ -304,12 +315,7 @@ def test_a_frame_that_fits_nothing_under_a_robust_loss_is_left_out():
         jax.random.key(1), 16, 250, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
     )
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
-    rng = np.random.default_rng(1)
-    pixels = pixels.copy()
-    where = np.argwhere(mask)
-    wild = where[rng.choice(len(where), len(where) // 100, replace=False)]
-    d = rng.normal(size=(len(wild), 2))
-    pixels[tuple(wild.T)] += 50 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    pixels = _wild(pixels, mask, seed=1)
     result = mc.calibrate_rig(target, pixels, mask, loss=mc.Huber(1.0))
     assert bool(result.ok.all()) and bool(result.converged)
     used = np.asarray(result.used).any(-1)
@@ -330,12 +336,7 @@ def test_a_robust_loss_keeps_the_pairs_whose_own_closed_form_failed():
     come out within 1.14 times the clean rig's errors (position, rotation, intrinsics)."""
     rig = _rig("object", noise=0.3)
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
-    rng = np.random.default_rng(0)
-    pixels = pixels.copy()
-    where = np.argwhere(mask)
-    wild = where[rng.choice(len(where), len(where) // 100, replace=False)]
-    d = rng.normal(size=(len(wild), 2))
-    pixels[tuple(wild.T)] += 50 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    pixels = _wild(pixels, mask, seed=0)
     result = mc.calibrate_rig(target, pixels, mask, loss=mc.Huber(1.0))
     assert bool(result.ok.all()) and bool(result.converged)
     used = np.asarray(result.used).any(-1)
