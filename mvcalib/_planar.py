@@ -536,14 +536,30 @@ def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
 _FAR_WORSE = 3.0
 
 
+def _median_rms(square, mask):
+    """The RMS that the median of the squared distances `square` over `mask` implies for 2-D
+    Gaussian noise, `sqrt(median / ln 2)` (the squared distance's median is `2 ln 2 sigma^2`,
+    the RMS distance `sqrt(2) sigma`): a few wild points do not move it, a fit that misses every
+    point does."""
+    return jnp.sqrt(_masked_median(square, mask, sort=True) / math.log(2.0))
+
+
+def _out_of_proportion(rms, pixels, used, among, max_relative_rms):
+    """Where `rms` (a view's, or a rig's (camera, frame) pair's) exceeds both
+    `max_relative_rms` of the spread of its `pixels` `used` (`poor_fit`) and `_FAR_WORSE` times
+    the median `rms` over `among`."""
+    typical = _masked_median(rms.reshape(-1), among.reshape(-1), sort=True)
+    return poor_fit(rms, pixels, used, max_relative_rms, sort=True) & (rms > _FAR_WORSE * typical)
+
+
 @_buckets.jit
 def _finish(closed, camera, world, pixels, mask, ok, max_relative_rms, loss):
     """NaN for the views that failed; the report per view, the pooled RMS of the others, and
     the views `ok` that fit out of all proportion both to their image of the target
     (`poor_fit`) and to the other views (`_FAR_WORSE` times their median RMS).
 
-    With a robust `loss`, a view's RMS is estimated from its median squared distance (an RMS
-    `sqrt(median / ln 2)` for 2-D Gaussian noise): one wild point is the loss's business, a view
+    With a robust `loss`, a view's RMS is estimated from its median squared distance
+    (`_median_rms`): one wild point is the loss's business, a view
     whose pose lies in another minimum is not. (Until 2026-12-05 the RMS over the points the
     loss kept, within 3 of its scales: a view of 5 or 7 points left at 70-78 px kept none, an
     RMS of 0, and pulled the focal length 1.4-1.8 % off; 16 x 250 `board_rig` keys 0 and 3,
@@ -552,14 +568,12 @@ def _finish(closed, camera, world, pixels, mask, ok, max_relative_rms, loss):
     report = compute_report(camera, world, pixels, mask & ok[:, None])
     n = jnp.sum(report.n_points)
     rms = jnp.sqrt(jnp.sum(report.residuals**2) / jnp.maximum(n, 1))
-    square = jnp.sum(report.residuals**2, -1)
     if loss is None:
         view_rms = report.rms
     else:
-        view_rms = jnp.sqrt(_masked_median(square, report.mask, sort=True) / math.log(2.0))
-    poor = poor_fit(view_rms, pixels, report.mask, max_relative_rms, sort=True)
-    worse = view_rms > _FAR_WORSE * _masked_median(view_rms, ok, sort=True)
-    return closed, camera, report, rms, ok & poor & worse
+        view_rms = _median_rms(jnp.sum(report.residuals**2, -1), report.mask)
+    poor = _out_of_proportion(view_rms, pixels, report.mask, ok, max_relative_rms)
+    return closed, camera, report, rms, ok & poor
 
 
 # ------------------------------------------------------------------------------ validation

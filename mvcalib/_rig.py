@@ -21,7 +21,6 @@ from there (`calibrate_rig`).
 from __future__ import annotations
 
 import functools
-import math
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -46,6 +45,8 @@ from ._planar import (
     MIN_PLANE_POINTS,
     _focal_lengths,
     _homography_kernel,
+    _median_rms,
+    _out_of_proportion,
     _plane_frame,
     _pose,
 )
@@ -1041,19 +1042,17 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
 
 def _poor_pairs(square, used, pixels, ok, max_relative_rms, loss):
     """`(C, F)`: with a robust `loss`, the (camera, frame) pairs of the cameras `ok` that fit
-    out of all proportion, judged as `calibrate_planar` judges a view: the RMS that the pair's
-    median squared distance `square` implies (`sqrt(median / ln 2)` for 2-D Gaussian noise)
-    above `max_relative_rms` of its pixels' spread and `_FAR_WORSE` times the median pair's. A
+    out of all proportion, judged as `calibrate_planar` judges a view (`_out_of_proportion`):
+    the RMS that the pair's median squared distance `square` implies (`_median_rms`) above
+    `max_relative_rms` of its pixels' spread and 3 times the median pair's. A
     frame whose pose ended in another minimum, or a camera's wrong detections in it: the loss
     keeps them at a bounded cost, but their points pull the camera. None without a loss (least
     squares takes every point)."""
     if loss is None:
         return jnp.zeros(used.shape[:2], bool)
     seen = jnp.any(used, -1)
-    rms = jnp.sqrt(_dlt._masked_median(square, used, sort=True) / math.log(2.0))  # noqa: SLF001
-    typical = _dlt._masked_median(rms.reshape(-1), seen.reshape(-1), sort=True)  # noqa: SLF001
-    poor = _dlt.poor_fit(rms, pixels, used, max_relative_rms, True)
-    return ok[:, None] & seen & poor & (rms > _FAR_WORSE * typical)
+    poor = _out_of_proportion(_median_rms(square, used), pixels, used, seen, max_relative_rms)
+    return ok[:, None] & seen & poor
 
 
 _FISHEYE_START_FRAMES = 20
