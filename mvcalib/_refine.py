@@ -520,6 +520,15 @@ def _fisheye_columns(xc, dist):
     return X * scale, Y * scale, dxy_dc, [unit_x * q for q in powers], [unit_y * q for q in powers]
 
 
+def _irls(loss, s):
+    """`(sqrt(rho'(s)), rho(s))` for squared residual lengths `s`: Gauss–Newton's model of a
+    robust cost, as Ceres builds it for losses whose `rho'' <= 0` (Huber's, Cauchy's). A point's
+    rows and residual are scaled by `sqrt(rho')`, which gives the cost's gradient, and its
+    Hessian without the `rho''` term; the cost itself is `rho`."""
+    drho = jax.vmap(jax.grad(loss.rho))(s.reshape(-1)).reshape(s.shape)
+    return jnp.sqrt(drho), loss.rho(s)
+
+
 def _robust_rows(rows, r, loss):
     """The rows `(d r_u, d r_v)` of `w(|r|^2) r` from those of `r (N, 2)`, point by point:
     `d (w r) = w dr + r w'(|r|^2) 2 r^T dr`."""

@@ -58,10 +58,10 @@ from ._refine import (
     Huber,
     _definite_solve,
     _free_parameters,
+    _irls,
     _pack,
     _parameters,
     _pixel_columns,
-    _robust_rows,
     _robust_weights,
     _skew_model,
     _unpack,
@@ -576,11 +576,12 @@ class _Normal(eqx.Module):
 
 
 def _block_rows(yc, yf, cam, frame, data, free, loss):
-    """The weighted residuals `r (2 N,)` of one camera in one frame (all u, then all v) and their
+    """The residuals `r (2 N,)` of one camera in one frame (all u, then all v) and their
     derivatives, rows `J (P + 6, 2 N)`: in the camera's increments `yc`, then the frame's `yf`; the
     chain rule written out (`_pixel_columns`), entry by entry over the points. (`jax.jacfwd` of
     `_block_residuals` gave the same to rounding in 4x the time: 1.6 against 0.4 ms for caliscope's
-    4 cameras x 48 frames.)"""
+    4 cameras x 48 frames.) Under a robust loss, both scaled for Gauss–Newton's model (`_irls`),
+    and the cost; without, the cost is None (that of `r`)."""
     p0, R0, scale, move = cam
     R0f, t0f, move_f, distance = frame
     target, pixels, mask = data
@@ -601,13 +602,16 @@ def _block_rows(yc, yf, cam, frame, data, free, loss):
     )
     rows = [[jnp.where(mask, d, 0.0) * unit for d in row] for row, unit in zip(rows, units)]
     r = jnp.where(mask[:, None], _project(_unpack(p, R0), world, mask) - pixels, 0.0)
-    rows = _robust_rows(rows, r, loss)
-    weighted = r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[:, None]
+    cost = None  # (least squares: that of the residuals)
+    if loss is not None:
+        w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
+        rows = [[w * d for d in row] for row in rows]
+        r, cost = r * w[:, None], jnp.sum(rho)
     # one concatenation of (1, N) pieces, u then v of each row: under vmap the frames come first
     # and each row is contiguous, as the products of `_normal` want them (stacked as (N, 2) and
     # contracted over both axes, XLA copied the Jacobian three times per step)
     J = jnp.concatenate([d.reshape(1, -1) for row in rows for d in row]).reshape(len(rows), -1)
-    return jnp.concatenate([weighted[:, 0], weighted[:, 1]]), J
+    return jnp.concatenate([r[:, 0], r[:, 1]]), J, cost
 
 
 def _normal(y, args, free, loss) -> _Normal:
@@ -625,9 +629,9 @@ def _normal(y, args, free, loss) -> _Normal:
             )
 
         def frames(*inputs):
-            r, J = jax.vmap(block)(*inputs)
+            r, J, cost = jax.vmap(block)(*inputs)
             JJ, g = jnp.einsum("fam,fbm->fab", J, J), jnp.einsum("fam,fm->fa", J, r)
-            return JJ, g, jnp.sum(r * r, -1)
+            return JJ, g, jnp.sum(r * r, -1) if cost is None else cost
 
         inputs = (y["frames"], R0f, t0f, move_f, px, m)
         JJ, g, rr = _sharding.chunked_map(frames, inputs, _sharding.cpu_chunk(len(m), FRAME_CHUNK))
@@ -1008,11 +1012,15 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
     frame_rms = jnp.sqrt(jnp.sum(square, (0, 2)) / jnp.sum(used, (0, 2)))
     threshold = jnp.inf if loss is None else 3.0 * loss.scale
     inliers = used & (jnp.sqrt(square) <= threshold)
-    # a camera whose fit is out of all proportion to its image of the target (calibrate's check)
+    # a camera whose fit is out of all proportion to its image of the target (calibrate's check);
+    # with a robust loss, its RMS the one its median implies, as for a pair (`_poor_pairs`): a
+    # few frames of wrong detections (a symmetric board seen turned by 180 degrees) are the
+    # pairs' business, and the camera's RMS over all its points blamed the camera (three of
+    # camera 3's 45 frames turned: 72 px, POOR_FIT; 2026-12-05)
     C, F, N = used.shape
-    poor = _dlt.poor_fit(
-        camera_rms, pixels.reshape(C, F * N, 2), used.reshape(C, F * N), max_relative_rms, True
-    )
+    flat = lambda x: x.reshape((C, F * N) + x.shape[3:])  # noqa: E731
+    judged = camera_rms if loss is None else _median_rms(flat(square), flat(used))
+    poor = _dlt.poor_fit(judged, flat(pixels), flat(used), max_relative_rms, True)
     status = jnp.where(ok & poor, Status.POOR_FIT, status).astype(jnp.int32)
     ok = status == Status.OK
     poor_pairs = _poor_pairs(square, used, pixels, ok, max_relative_rms, loss)
@@ -1044,10 +1052,10 @@ def _poor_pairs(square, used, pixels, ok, max_relative_rms, loss):
     """`(C, F)`: with a robust `loss`, the (camera, frame) pairs of the cameras `ok` that fit
     out of all proportion, judged as `calibrate_planar` judges a view (`_out_of_proportion`):
     the RMS that the pair's median squared distance `square` implies (`_median_rms`) above
-    `max_relative_rms` of its pixels' spread and 3 times the median pair's. A
-    frame whose pose ended in another minimum, or a camera's wrong detections in it: the loss
-    keeps them at a bounded cost, but their points pull the camera. None without a loss (least
-    squares takes every point)."""
+    `max_relative_rms` of its pixels' spread and 3 times the median pair's. A camera's wrong
+    detections in a frame (a symmetric board seen turned by 180 degrees), or a frame whose pose
+    ended in another minimum: the loss keeps them at a bounded cost, but their points pull the
+    camera. None without a loss (least squares takes every point)."""
     if loss is None:
         return jnp.zeros(used.shape[:2], bool)
     seen = jnp.any(used, -1)
@@ -1157,8 +1165,9 @@ def calibrate_rig(
     camera from pulling the others.) With a robust `loss` and concrete arrays, so are the
     (camera, frame) pairs that fit out of all proportion (judged as `calibrate_planar` judges a
     view: the RMS their median distance implies, above `max_relative_rms` of their pixels'
-    spread and 3 times the median pair's; a frame whose pose ended in another minimum), which
-    the loss would keep at a bounded cost while they pull the camera; they are not in `used`.
+    spread and 3 times the median pair's: a camera's wrong detections in a frame, such as a
+    board seen turned by 180 degrees), which the loss would keep at a bounded cost while they
+    pull the camera; they are not in `used`.
     Then, with concrete arrays, a camera left out, or the worst
     camera where its RMS is more than 3 times the median camera's (a good camera whose own
     frames left its start loose can end in another minimum), is calibrated from its points in
@@ -1312,11 +1321,9 @@ def calibrate_rig(
     # Outside a trace, a POOR_FIT camera, which pulled the others in the solve it took part in,
     # is left out and the rest solved again (by the same compiled program), until none is new;
     # then, with a robust loss, so are the (camera, frame) pairs that fit out of all proportion
-    # (`_poor_pairs`). 16 x 250 `board_rig` key 1 with 1 % of the corners moved by 50 px and
-    # `Huber(1.0)`: frame 37 (cameras 11 and 12, 4 and 6 points) at 224 and 35 px, and camera 11
-    # in frame 224 (5 points) at 4.8 px, pulled camera 11's focal length 0.37 % off, 10 standard
-    # errors, and the solve stopped unconverged at 100 steps (still at 400); without them, 9
-    # steps and 0.007 %.
+    # (`_poor_pairs`): an 8 x 100 `board_rig` whose camera 3 found a symmetric board's corners
+    # in reverse order in three frames (the board turned by 180 degrees), `Huber(1.0)`: the two
+    # frames other cameras saw are left out, the camera kept.
     dropped, dropped_rms = np.zeros(C, bool), np.full(C, np.nan)
     gone = np.zeros((C, F), bool)  # the pairs left out
     while concrete:

@@ -305,49 +305,71 @@ def _wild(pixels, mask, seed):
     return pixels
 
 
-def test_a_frame_that_fits_nothing_under_a_robust_loss_is_left_out():
-    """16 x 250 (key 1), 1 % of the corners moved by 50 px, `Huber(1.0)`: frame 37 (cameras 11
-    and 12, 4 and 6 points) ended at 224 and 35 px, and camera 11 in frame 224 (5 points) at
-    4.8 px; the loss kept them at a bounded cost, but they pulled camera 11's focal length
-    0.37 % off (10 standard errors) and the solve stopped unconverged at 100 steps (until
-    2026-12-05). Those pairs are left out now, and the rest solved again."""
+def test_a_robust_loss_converges_as_least_squares_does():
+    """16 x 250 (key 1), 1 % of the corners moved by 50 px: `Huber(1.0)` stopped unconverged at
+    100 steps, frame 37 left at 224 px in camera 11, its focal length 0.37 % off (10 standard
+    errors), and `Cauchy(1.0)` raised on a 3-D target's rig (8 x 100, key 2: every camera
+    POOR_FIT), until 2026-12-05. The robust solves' Gauss–Newton model was that of the residuals
+    scaled by `sqrt(rho / r^2)`, which steps twice too far where a point's loss is linear, and
+    the damping crept. It is Ceres' now (`_refine._irls`): 9 steps, every pair used, every focal
+    length within 0.03 %."""
     rig = mc.synthetic.board_rig(
         jax.random.key(1), 16, 250, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
     )
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
-    pixels = _wild(pixels, mask, seed=1)
-    result = mc.calibrate_rig(target, pixels, mask, loss=mc.Huber(1.0))
+    result = mc.calibrate_rig(target, _wild(pixels, mask, seed=1), mask, loss=mc.Huber(1.0))
     assert bool(result.ok.all()) and bool(result.converged)
-    used = np.asarray(result.used).any(-1)
-    assert not used[11, 37] and not used[12, 37] and not used[11, 224]
-    # a handful of pairs, not whole cameras: 11 of the 1460 observed and not skipped (8 of them
-    # were not used without this check either)
+    assert int(result.iterations) <= 15, int(result.iterations)  # (least squares: 8 steps)
     observed = mask.any(-1) & ~np.asarray(result.skipped)
-    assert (observed & ~used).sum() <= 11, np.argwhere(observed & ~used)
+    assert (observed == np.asarray(result.used).any(-1)).all()
     error = np.abs(np.asarray(result.cameras.alpha_u) / np.asarray(rig.cameras.alpha_u) - 1)
-    assert error.max() < 1e-3, error
+    assert error.max() < 5e-4, error
 
 
-def test_a_robust_loss_keeps_the_pairs_whose_own_closed_form_failed():
-    """A 3-D target, 1 % of the detections moved by 50 px, `Huber(1.0)`: a pair with one wrong
-    detection fails its own DLT's fit check, and a third of the pairs (110-125 of ~315) were
-    left out of the joint solve so (until 2026-12-05). The loss takes them now, wherever other
-    cameras posed the frame: every pair left out is in a frame nobody posed, and the cameras
-    come out within 1.14 times the clean rig's errors (position, rotation, intrinsics)."""
-    rig = _rig("object", noise=0.3)
+def test_views_of_a_board_turned_by_180_degrees_are_left_out_not_the_camera():
+    """A symmetric board's corners found in the reverse order (the board seen turned by 180
+    degrees) in three of camera 3's frames, 1 % of all corners moved by 50 px, `Huber(1.0)`:
+    the two turned frames that other cameras saw fit nothing and are left out; the one only
+    camera 3 saw is a pose of its own. (Until 2026-12-05 the camera was judged by its RMS over
+    all its points, 72 px, and left out as POOR_FIT.)"""
+    rig = _rig("board", noise=0.3)
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
     pixels = _wild(pixels, mask, seed=0)
+    turned = [12, 15, 21]  # camera 3 sees every corner in these; frame 12 alone
+    assert mask[3, turned].all() and mask[:, 12].any(-1).sum() == 1
+    pixels[3, turned] = pixels[3, turned, ::-1]
     result = mc.calibrate_rig(target, pixels, mask, loss=mc.Huber(1.0))
+    assert bool(result.ok.all()) and bool(result.converged)
+    observed = mask.any(-1) & ~np.asarray(result.skipped)
+    assert np.argwhere(observed & ~np.asarray(result.used).any(-1)).tolist() == [[3, 15], [3, 21]]
+    clean = mc.calibrate_rig(target, np.asarray(rig.pixels), mask)
+    errors, clean_errors = _errors(rig, result)[:3], _errors(rig, clean)[:3]
+    assert all(e < 1.3 * c for e, c in zip(errors, clean_errors)), (errors, clean_errors)
+
+
+@pytest.mark.parametrize("key, loss", [(0, mc.Huber(1.0)), (2, mc.Cauchy(1.0))])
+def test_a_robust_loss_keeps_the_pairs_whose_own_closed_form_failed(key, loss):
+    """A 3-D target, 1 % of the detections moved by 50 px: a pair with one wrong detection fails
+    its own DLT's fit check, and a third of the pairs (110-125 of ~315) were left out of the
+    joint solve so (until 2026-12-05). The loss takes them now, wherever other cameras posed the
+    frame: every pair left out is in a frame nobody posed. The cameras come out within 1.3 times the clean rig's errors
+    (position, rotation, intrinsics; before: 2.9, 1.8 and 1.5 times), or within issue 40's
+    figures, and within 3 of their standard errors. (Key 2 with `Cauchy`: raised, see
+    `test_a_robust_loss_converges_as_least_squares_does`.)"""
+    rig = _rig("object", noise=0.3, key=key)
+    target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
+    result = mc.calibrate_rig(target, _wild(pixels, mask, seed=key), mask, loss=loss)
     assert bool(result.ok.all()) and bool(result.converged)
     used = np.asarray(result.used).any(-1)
     posed = np.isfinite(np.asarray(result.target_poses.t)).all(-1)
     observed = mask.any(-1) & ~np.asarray(result.skipped)
     assert not (observed & posed[None] & ~used).any()
     assert (observed & ~used).sum() < 0.1 * observed.sum()
-    # the accuracy of the clean rig's solve (before: 2.9, 1.8 and 1.5 times its errors)
     clean = mc.calibrate_rig(target, np.asarray(rig.pixels), mask)
-    errors, clean_errors = _errors(rig, result)[:3], _errors(rig, clean)[:3]
-    assert all(e < 1.3 * c for e, c in zip(errors, clean_errors)), (errors, clean_errors)
+    errors, clean_errors = _errors(rig, result), _errors(rig, clean)
+    bounds = (1e-3, 0.05, 2e-3)  # 0.1 % of the baseline, 0.05 degrees, 0.2 %
+    assert all(e < max(1.3 * c, b) for e, c, b in zip(errors, clean_errors, bounds)), errors
+    assert errors[3] < 3.0, errors
 
 
 def test_gradient_of_a_camera_position_equals_central_differences():
