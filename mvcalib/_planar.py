@@ -32,7 +32,9 @@ from ._refine import (
     GROUPS,
     Cauchy,
     Huber,
+    SecantLM,
     _free_parameters,
+    _irls,
     _robust_weights,
     default_solver,
     parameter_names,
@@ -481,6 +483,16 @@ def _planar_residuals(y, args):
     return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
 
 
+def _planar_model(y, args):
+    """Gauss–Newton's model of the robust cost (`_irls`, `SecantLM`'s `options["model"]`): the
+    residuals scaled by `sqrt(rho')`, held out of their derivative, and the cost."""
+    world, pixels, mask, loss = args[7:]
+    r = _planar_unknowns(y, args).project(world) - pixels
+    r = jnp.where(mask[..., None], r, 0.0)
+    w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
+    return r * jax.lax.stop_gradient(w)[..., None], jnp.sum(rho)
+
+
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
     """Refine the closed-form rig. Views that failed (`~ok`) get a harmless seed and no points
@@ -514,9 +526,12 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     # The fixed parameters are zero columns of the Jacobian, so the implicit derivative's linear
     # system is singular along them: a least-squares (SVD) solve gives them zero derivative.
     adjoint = optx.ImplicitAdjoint(linear_solver=lx.SVD())
+    # (with a robust loss, the step's model is Ceres': `_irls`)
+    options = {"model": _planar_model} if loss is not None and isinstance(solver, SecantLM) else {}
     sol = optx.least_squares(
-        _planar_residuals, solver, y0, args, max_steps=max_steps, adjoint=adjoint, throw=False
-    )
+        _planar_residuals, solver, y0, args, options=options, max_steps=max_steps,
+        adjoint=adjoint, throw=False,
+    )  # fmt: skip
     steps = before + sol.stats["num_steps"]
     return _planar_unknowns(sol.value, args), steps, sol.result._value  # noqa: SLF001
 

@@ -352,10 +352,10 @@ def test_a_robust_loss_keeps_the_pairs_whose_own_closed_form_failed(key, loss):
     """A 3-D target, 1 % of the detections moved by 50 px: a pair with one wrong detection fails
     its own DLT's fit check, and a third of the pairs (110-125 of ~315) were left out of the
     joint solve so (until 2026-12-05). The loss takes them now, wherever other cameras posed the
-    frame: every pair left out is in a frame nobody posed. The cameras come out within 1.3 times the clean rig's errors
-    (position, rotation, intrinsics; before: 2.9, 1.8 and 1.5 times), or within issue 40's
-    figures, and within 3 of their standard errors. (Key 2 with `Cauchy`: raised, see
-    `test_a_robust_loss_converges_as_least_squares_does`.)"""
+    frame: every pair left out is in a frame nobody posed. The cameras come out within 1.3 times
+    the clean rig's errors (position, rotation, intrinsics; before: 2.9, 1.8 and 1.5 times), or
+    within issue 40's figures, and within 3 of their standard errors. (Key 2 with `Cauchy`:
+    raised, see `test_a_robust_loss_converges_as_least_squares_does`.)"""
     rig = _rig("object", noise=0.3, key=key)
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
     result = mc.calibrate_rig(target, _wild(pixels, mask, seed=key), mask, loss=loss)
