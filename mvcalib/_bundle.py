@@ -27,6 +27,7 @@ from ._refine import (
     LevenbergMarquardt,
     SecantLM,
     _free_parameters,
+    _irls,
     _pack,
     _robust_weights,
     _scales,
@@ -98,14 +99,32 @@ def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0):
 
 
 def _residuals(y, args):
+    """The residuals, whose squares sum to the cost: the pixels' weighted by the robust loss
+    (`_robust_weights`), the anchors', the unseen cameras' pins."""
+    out = _unweighted(y, args)
+    r, loss = out["pixels"], args[10]
+    out["pixels"] = r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+    return out
+
+
+def _model(y, args):
+    """Gauss–Newton's model of the robust cost (`_irls`, `SecantLM`'s `options["model"]`): the
+    pixels' residuals scaled by `sqrt(rho')`, held out of their derivative; and the cost."""
+    out = _unweighted(y, args)
+    r, loss = out["pixels"], args[10]
+    w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
+    cost = jnp.sum(rho) + sum(jnp.sum(v * v) for k, v in out.items() if k != "pixels")
+    out["pixels"] = r * jax.lax.stop_gradient(w)[..., None]
+    return out, cost
+
+
+def _unweighted(y, args):
     (p0, R0, scale, free, shared_free, T0, world0, pixels, mask, anchors, loss, pinned) = args
     anchor_ids, anchor_xyz, anchor_sigma = anchors
     cams, T, world = _unknowns(y, p0, R0, scale, free, shared_free, T0, world0)
     placed = T.apply(world)
     r = cams.project(placed) - pixels
-    r = jnp.where(mask[..., None], r, 0.0)
-    r = r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
-    out = {"pixels": r}
+    out = {"pixels": jnp.where(mask[..., None], r, 0.0)}
     if anchor_ids is not None:
         out["anchors"] = (placed[anchor_ids] - anchor_xyz) / anchor_sigma
     # A camera that sees no point has parameters that no residual determines: held at the seed,
@@ -504,7 +523,12 @@ def _inverse_cholesky_factor_transpose(A):
 
 @eqx.filter_jit
 def _solve(fn, args, y0, solver, max_steps):
-    return optx.least_squares(fn, solver, y0, args, max_steps=max_steps, throw=False)
+    # (with a robust loss, `SecantLM`'s steps take Ceres' model of the cost: `_irls`)
+    robust = args[10] is not None and isinstance(solver, SecantLM)
+    options = {"model": _model} if robust else {}
+    return optx.least_squares(
+        fn, solver, y0, args, options=options, max_steps=max_steps, throw=False
+    )
 
 
 def _with_intrinsics_of(cameras: Camera, i: int) -> Camera:
