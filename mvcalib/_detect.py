@@ -109,7 +109,7 @@ def _as_grey(image) -> np.ndarray:
         raise ValueError(f"`image` is too small to hold dots: {array.shape}, need >= 16 x 16.")
     grey = _unit_range(array)
     if not np.ptp(grey) > 0:
-        raise ValueError("`image` is constant: it has no contrast, so there are no dots to find.")
+        raise ValueError("the image is constant: it has no contrast, so there are no dots to find.")
     # float32 for the whole-image filters (twice as fast; 24 bits hold uint16 exactly); the
     # per-dot centroid sums are done in float64.
     return grey.astype(np.float32)

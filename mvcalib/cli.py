@@ -67,7 +67,8 @@ EXAMPLES = {
     "demo": """\
   mvcalib demo                    the paper's experiment with 0.3 px noise
   mvcalib demo --noise-free       no noise: the four snapshots agree to 1e-6 px
-  mvcalib demo --float32          the same in single precision
+  mvcalib demo --float32          a scene drawn and solved in single precision: the same
+                                  intrinsics as the default's, other random poses
   mvcalib demo --images           the whole pipeline from rendered photographs, and a figure
                                   of the detection stages (mvcalib_stages.png)
   mvcalib demo --save demo && mvcalib report demo/rig.json demo/correspondences.csv \\
@@ -83,9 +84,9 @@ files:
   observations     CSV with the header camera,frame,point,target_x,target_y,target_z,pixel_x,
                    pixel_y (mvcalib.io.save_observations: a target moved over frames), or
                    caliscope's xy.csv
-  rig              JSON (mvcalib.io.save_json), OpenCV YAML (.yml, .yaml) or a COLMAP text
-                   model (a folder); cameras are matched to the files' camera names;
-                   calibrate-rig --intrinsics also reads caliscope's camera_array.toml
+  rig              JSON (mvcalib.io.save_json), OpenCV YAML (.yml, .yaml), a COLMAP text
+                   model (a folder), caliscope's camera_array.toml or aniposelib's
+                   calibration.toml; cameras are matched to the files' camera names
 
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
@@ -195,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--intrinsics",
         metavar="RIG",
         help="starting cameras, one per camera of the observations (matched by name, else in "
-        "order): a rig file (JSON, .yml, COLMAP folder) or caliscope's camera_array.toml",
+        "order): a rig file (JSON, .yml, COLMAP folder, caliscope's or aniposelib's .toml)",
     )
     rig.add_argument(
         "--fix",
@@ -255,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
         "all cameras and, with --plot, a figure (the rig in 3-D with the points, each camera's "
         "residuals over its image, residual histograms).",
     )
-    report.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml) or COLMAP folder")
+    report.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
     report.add_argument("correspondences", metavar="CORRESPONDENCES", help=".csv or .json")
     report.add_argument("--plot", metavar="PNG", help="write the figure here (.png, .pdf, .svg)")
     report.add_argument("--image-size", **size, help="image size for the figure")
@@ -270,7 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
         "apart). Points seen once are written with empty coordinates. If the tracks file has "
         "world coordinates, the distance to them is reported.",
     )
-    triangulate.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml) or COLMAP folder")
+    triangulate.add_argument(
+        "rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder"
+    )
     triangulate.add_argument("tracks", metavar="TRACKS", help=".csv or .json")
     triangulate.add_argument("--out", required=True, metavar="CSV", help="3-D points to write")
     triangulate.add_argument("--refine", action="store_true", help="minimise reprojection error")
@@ -331,7 +334,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--noise-free", action="store_true", help="set both noises to zero")
     demo.add_argument("--seed", type=int, default=2010, help="PRNG seed of the scene")
-    demo.add_argument("--float32", action="store_true", help="compute in single precision")
+    demo.add_argument(
+        "--float32",
+        action="store_true",
+        help="draw the scene and compute in single precision (the random poses differ from the "
+        "default's: the same seed draws other numbers in float32)",
+    )
     demo.add_argument(
         "--images",
         action="store_true",
@@ -383,6 +391,15 @@ def _check_usage(parser, args) -> None:
                 parser.error(f"no such file: {getattr(args, flag)}")
         if args.clicks and not args.target:
             parser.error("--clicks name dots of a --target file")
+    if (
+        args.command in ("report", "triangulate")
+        and pathlib.Path(args.rig).suffix.lower() == ".csv"
+    ):
+        data = "CORRESPONDENCES" if args.command == "report" else "TRACKS"
+        parser.error(
+            f"{args.rig} is a CSV file, not a rig: are the arguments swapped? The rig comes "
+            f"first: mvcalib {args.command} RIG {data}"
+        )
     for flag in ("out", "plot", "save"):
         value = getattr(args, flag, None)
         if value and not pathlib.Path(value).resolve().parent.is_dir():
@@ -406,6 +423,17 @@ def _check_usage(parser, args) -> None:
         parser.error("--min-angle must be non-negative")
     if args.command == "calibrate-rig" and args.huber is not None and not args.huber > 0:
         parser.error("--huber must be positive")
+    if (
+        args.command == "calibrate-rig"
+        and args.fisheye
+        and not (args.image_size or args.intrinsics)
+    ):
+        parser.error(
+            "--fisheye needs --image-size WIDTH HEIGHT (the photos' size), or --intrinsics with "
+            "fisheye cameras"
+        )
+    if args.command == "calibrate-images" and args.focal is not None and not args.focal > 0:
+        parser.error("--focal must be positive (a focal-length guess in pixels)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -448,22 +476,55 @@ def _progress(args):
 
 
 # ---------------------------------------------------------------------------- shared helpers
+_RIGS = (
+    "a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), a COLMAP text model (a folder), or "
+    "caliscope's camera_array.toml or aniposelib's calibration.toml"
+)
+
+
 def _load_rig(path):
-    """`(cameras (C,), names)` from a JSON rig, an OpenCV YAML file or a COLMAP folder."""
+    """`(cameras (C,), names)` from a JSON rig, an OpenCV YAML file, a COLMAP folder, or
+    caliscope's or aniposelib's TOML; `ValueError` saying which formats are read otherwise."""
     import jax
 
     from . import io
 
     path = pathlib.Path(path)
+    suffix = path.suffix.lower()
     if path.is_dir():
         cameras, names = io.load_colmap(path)
-    elif path.suffix.lower() in (".yml", ".yaml"):
+    elif suffix in (".yml", ".yaml"):
         cameras, names = io.load_opencv(path)
+    elif suffix == ".toml":
+        cameras, names = _load_toml_rig(path)
+    elif suffix == ".csv":
+        raise ValueError(f"{path}: a CSV file is not a rig; {_RIGS}.")
     else:
-        cameras, names = io.load_json(path)
+        try:
+            cameras, names = io.load_json(path)
+        except ValueError as error:  # (any name but .json: say what else a rig may be)
+            if suffix == ".json":
+                raise
+            raise ValueError(f"{_one_line(error).rstrip('.')}; {_RIGS}.") from None
     if cameras.batch_shape == ():
         cameras = jax.tree_util.tree_map(lambda a: a[None], cameras)
     return cameras, names
+
+
+def _load_toml_rig(path: pathlib.Path):
+    """caliscope's `camera_array.toml` or aniposelib's `calibration.toml`, told apart by their
+    tables (`[cameras.<id>]` or `[cam_N]`)."""
+    from . import io
+
+    document = io._read_toml(path)
+    if isinstance(document.get("cameras"), dict):
+        return io.load_caliscope_cameras(path)
+    if any(re.fullmatch(r"cam_\d+", key) for key in document):
+        return io.load_aniposelib(path)
+    raise ValueError(
+        f"{path}: neither caliscope's camera_array.toml ([cameras.<id>] tables) nor "
+        "aniposelib's calibration.toml ([cam_N] tables), the TOML rigs mvcalib reads."
+    )
 
 
 def _identifier(name: str) -> str:
@@ -635,6 +696,11 @@ def _calibrate_rig(args) -> int:
     cameras = None
     if args.intrinsics is not None:
         cameras = _starting_rig(args.intrinsics, obs.cameras)
+        if args.fisheye and cameras.lens != "fisheye":
+            raise ValueError(
+                f"--fisheye, but the cameras of --intrinsics {args.intrinsics} are "
+                f"{cameras.lens} cameras: leave out --fisheye, or give fisheye cameras."
+            )
     if args.reference == "target":
         reference = "target"
     elif args.reference in obs.cameras:
@@ -732,17 +798,12 @@ def _load_observations(path):
 
 
 def _starting_rig(path, names):
-    """The rig of `path` (JSON, .yml, COLMAP folder or caliscope's .toml) in the order of the
-    observations' camera `names`: matched by name if it has the same names, else in order."""
+    """The rig of `path` (any that `_load_rig` reads) in the order of the observations' camera
+    `names`: matched by name if it has the same names, else in order."""
     import jax
     import numpy as np
 
-    from . import io
-
-    if pathlib.Path(path).suffix.lower() == ".toml":
-        cameras, theirs = io.load_caliscope_cameras(path)
-    else:
-        cameras, theirs = _load_rig(path)
+    cameras, theirs = _load_rig(path)
     if len(theirs) != len(names):
         raise ValueError(
             f"{path}: {_count(len(theirs), 'camera')}; the observations have {len(names)}."
@@ -945,10 +1006,9 @@ def _calibrate_images(args) -> int:
     from ._images import calibrate_images
 
     target = targets.from_file(args.target) if args.target else targets.box_corner()
-    try:  # (a bad clicks file is a failed run, exit 1, as a bad photo is)
-        seeds = io.load_clicks(args.clicks, args.images, target) if args.clicks else None
-    except ValueError as error:
-        raise _Failed(str(error)) from None
+    # (a malformed clicks file, as a malformed --target, is bad input: exit code 2)
+    seeds = io.load_clicks(args.clicks, args.images, target) if args.clicks else None
+    _check_seeds(args, target, seeds)
     result = calibrate_images(
         args.images,
         target,
@@ -975,6 +1035,42 @@ def _calibrate_images(args) -> int:
     n_ok = int(result.ok.sum())
     print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
     return 0 if n_ok == len(result.names) else 1
+
+
+def _check_seeds(args, target, seeds) -> None:
+    """Each photo can be labelled: from the target's fiducial dots, or from its clicks (six or
+    more dots not all on one plane, or four or more with --focal), as `label_dots` and
+    `match_dots` need; else `ValueError` (exit code 2) before any photo is read."""
+    import numpy as np
+
+    from ._match import _coplanar
+
+    need = "six or more dots not all on one plane, or four or more and --focal PX"
+    if 6 <= len(target.fiducials) <= 9:  # (what `label_dots` labels from)
+        seeds = seeds or [None] * len(args.images)
+    elif seeds is None:
+        raise ValueError(
+            f"{args.target}: this target has no fiducial dots to label the photos from; give "
+            f"--clicks CSV, the dots clicked in each photo ({need})."
+        )
+    elif any(seed is None for seed in seeds):
+        missing = args.images[[seed is None for seed in seeds].index(True)]
+        raise ValueError(
+            f"{args.clicks}: no clicks for {missing}; a target without fiducial dots needs "
+            f"clicks in every photo ({need})."
+        )
+    world = np.asarray(target.points)
+    for image, seed in zip(args.images, seeds):
+        if seed is None:
+            continue
+        n = len(seed[1])
+        enough = n >= 6 and not _coplanar(world[target.index(seed[1])])
+        if not enough and (args.focal is None or n < 4):
+            plane = " on one plane" if n >= 6 else ""
+            raise ValueError(
+                f"{args.clicks}: {_count(n, 'click')}{plane} for {image}; give {need} (a "
+                "focal-length guess in pixels)."
+            )
 
 
 def _demo(args) -> int:

@@ -75,7 +75,11 @@ def _pipeline(scene: PaperScene, noise):
 def run(
     *, noise: float = 0.3, global_noise: float = 0.0, seed: int = 2010, dtype=None
 ) -> DemoResult:
-    """Run the paper's pipeline on `synthetic.paper_scene` and return every intermediate result."""
+    """Run the paper's pipeline on `synthetic.paper_scene` and return every intermediate result.
+
+    The scene is drawn in `dtype` too, so float32 and float64 give different scenes from one
+    `seed` (the same intrinsics, other random poses): compare their accuracy, not their numbers.
+    """
     make = functools.partial(
         paper_scene, jax.random.key(seed), noise=noise, global_noise=global_noise, dtype=dtype
     )

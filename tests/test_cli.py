@@ -11,6 +11,7 @@ import sys
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from conftest import data_dir
 from test_real_data import load_oxford_house
 
 import mvcalib as mc
@@ -305,7 +306,24 @@ def files(tmp_path, monkeypatch, cache_off):
     for y, x in ((30, 40), (30, 110), (85, 40), (85, 110), (60, 75)):
         image[(rows - y) ** 2 + (cols - x) ** 2 < 36] = 20
     iio.imwrite("dots.png", image)
+    iio.imwrite("other.png", image)
+    iio.imwrite("blank.png", np.full((64, 64), 128, np.uint8))
     (tmp_path / "folder.csv").mkdir()
+    # a board seen by cameras a and b in one frame (calibrate-rig's input)
+    board = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    seen = np.ones((2, 1, 4), bool)
+    obs = mc.io.Observations(board, np.zeros((2, 1, 4, 2)), seen, ["a", "b"], np.array([0]),
+                             np.arange(4))  # fmt: skip
+    mc.io.save_observations("obs.csv", obs)
+    # a target file (no fiducial dots) and clicks on it, for calibrate-images
+    (tmp_path / "target.txt").write_text("1 0 0 0\n2 10 0 0\n3 0 10 0\n4 10 10 5\n5 5 5 5\n")
+    (tmp_path / "four.csv").write_text(
+        "image,dot_id,pixel_x,pixel_y\n0,1,40,30\n0,2,110,30\n0,3,40,85\n0,4,110,85\n"
+    )
+    (tmp_path / "badclicks.csv").write_text("img,id,x,y\n0,2,1,1\n")
+    (tmp_path / "image1.csv").write_text("image,dot_id,pixel_x,pixel_y\n1,2,1,1\n")
+    (tmp_path / "neither.toml").write_text("[camera]\nname = 'a'\n")
+    (tmp_path / "rig.txt").write_text("not JSON\n")
     return tmp_path
 
 
@@ -323,7 +341,46 @@ def files(tmp_path, monkeypatch, cache_off):
         (["calibrate", "five.csv", "--out", "r.json"], 2, "at least 6 points are needed"),
         (["calibrate", "rig.json", "--out", "r.json"], 2, "not a correspondences file"),
         (["report", "rig.json", "other.csv"], 2, "camera 'c' is not in the rig ('a', 'b')"),
-        (["report", "corr.csv", "corr.csv"], 2, "not a readable JSON rig file"),
+        (["report", "corr.csv", "rig.json"], 2,
+         "corr.csv is a CSV file, not a rig: are the arguments swapped? The rig comes first: "
+         "mvcalib report RIG CORRESPONDENCES"),
+        (["triangulate", "tracks.csv", "rig.json", "--out", "p.csv"], 2,
+         "mvcalib triangulate RIG TRACKS"),
+        (["report", "neither.toml", "corr.csv"], 2,
+         "neither.toml: neither caliscope's camera_array.toml ([cameras.<id>] tables) nor "
+         "aniposelib's calibration.toml ([cam_N] tables)"),
+        (["report", "rig.txt", "corr.csv"], 2,
+         "); a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), a COLMAP text model (a "
+         "folder), or caliscope's camera_array.toml or aniposelib's calibration.toml."),
+        (["calibrate-rig", "obs.csv", "--intrinsics", "neither.toml", "--out", "r.json"], 2,
+         "neither caliscope's camera_array.toml"),
+        (["calibrate-rig", "obs.csv", "--intrinsics", "corr.csv", "--out", "r.json"], 2,
+         "corr.csv: a CSV file is not a rig; a rig is mvcalib's JSON"),
+        (["calibrate-rig", "obs.csv", "--fisheye", "--out", "r.json"], 2,
+         "--fisheye needs --image-size WIDTH HEIGHT (the photos' size), or --intrinsics with "
+         "fisheye cameras"),
+        (["calibrate-rig", "obs.csv", "--fisheye", "--intrinsics", "rig.json", "--out", "r.json"],
+         2, "--fisheye, but the cameras of --intrinsics rig.json are pinhole cameras: leave out "
+         "--fisheye, or give fisheye cameras."),
+        (["calibrate-images", "dots.png", "--target", "target.txt", "--clicks", "badclicks.csv",
+          "--focal", "900", "--out", "r.json"], 2,
+         "badclicks.csv:1: no 'image' column; the header is image,dot_id,pixel_x,pixel_y."),
+        (["calibrate-images", "dots.png", "--target", "target.txt", "--clicks", "image1.csv",
+          "--out", "r.json"], 2, "image1.csv, line 2: no image '1' among the images given"),
+        (["calibrate-images", "dots.png", "--target", "target.txt", "--out", "r.json"], 2,
+         "target.txt: this target has no fiducial dots to label the photos from; give --clicks "
+         "CSV, the dots clicked in each photo (six or more dots not all on one plane, or four or "
+         "more and --focal PX)."),
+        (["calibrate-images", "dots.png", "other.png", "--target", "target.txt", "--clicks",
+          "four.csv", "--focal", "900", "--out", "r.json"], 2,
+         "four.csv: no clicks for other.png; a target without fiducial dots needs clicks in "
+         "every photo"),
+        (["calibrate-images", "dots.png", "--target", "target.txt", "--clicks", "four.csv",
+          "--out", "r.json"], 2,
+         "four.csv: 4 clicks for dots.png; give six or more dots not all on one plane, or four "
+         "or more and --focal PX (a focal-length guess in pixels)."),
+        (["calibrate-images", "dots.png", "--target", "target.txt", "--clicks", "four.csv",
+          "--focal", "-5", "--out", "r.json"], 2, "--focal must be positive"),
         (["report", "rig.json", "corr.csv", "--plot", "no/f.png"], 2, "folder of --plot"),
         (["triangulate", "rig.json", "tracks.csv", "--out", "p.json"], 2, "must be a .csv"),
         (["triangulate", "rig.json", "tracks.csv", "--out", "p.csv", "--min-angle", "-1"], 2,
@@ -346,7 +403,53 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
     err = capsys.readouterr().err
     assert returned == code, err
     assert message in err and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("mvcalib: error: ") == (code == 2), err  # bad input says `error:`
     assert not list(files.glob(".*.tmp")) and not list(files.glob("folder.csv/*"))
+    assert not (files / "r.json").exists()  # nothing written for bad input
+
+
+@pytest.mark.parametrize(
+    "toml", ["caliscope_4cam/camera_array.toml",
+             "aniposelib_mouse_outdoor/calibration_right_4_10_2026_adjusted.toml"],
+)  # fmt: skip
+def test_report_reads_caliscope_and_aniposelib_rigs(files, capsys, toml):
+    folder, name = toml.split("/")
+    path = data_dir(folder) / name
+    load = mc.io.load_caliscope_cameras if folder.startswith("caliscope") else mc.io.load_aniposelib
+    cameras, names = load(path)
+    # points around the middle of the cameras' centres, as each camera of the file sees them
+    centres = np.einsum("cji,cj->ci", np.asarray(cameras.R), -np.asarray(cameras.t))
+    spread = np.ptp(centres, 0).max()
+    world = centres.mean(0) + 0.05 * spread * np.random.default_rng(0).standard_normal((20, 3))
+    pixels = np.asarray(cameras.project(world))
+    mc.io.save_correspondences("seen.csv", world, pixels, cameras=names)
+    assert cli.main(["report", str(path), "seen.csv", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    table = _table(out)
+    assert list(table) == names
+    assert all(row[2] < 1e-6 and row[4] == 20 for row in table.values())  # RMS, points
+
+
+def test_calibrate_rig_reads_aniposelib_intrinsics(files, capsys):
+    # read as a rig (12 cameras), not refused as "no [cameras.<id>] tables" of caliscope's
+    path = data_dir("aniposelib_mouse_outdoor") / "calibration_right_4_10_2026_adjusted.toml"
+    args = ["calibrate-rig", "obs.csv", "--intrinsics", str(path), "--out", "r.json", "--quiet"]
+    assert cli.main(args) == 2
+    assert capsys.readouterr().err == (
+        f"mvcalib: error: {path}: 12 cameras; the observations have 2.\n"
+    )
+
+
+def test_messages_about_photos_name_no_python_arguments(files, capsys):
+    assert cli.main(["detect", "blank.png", "--out", "d.csv"]) == 1
+    out, err = capsys.readouterr()
+    said = "blank.png: the image is constant: it has no contrast"
+    assert said in err and "the image is constant" in out and "`image`" not in out + err
+    assert cli.main(["calibrate-images", "blank.png", "--out", "r.json"]) == 1
+    out, err = capsys.readouterr()
+    assert said in err and "the image is constant" in out and "`image`" not in out + err
+    messages = json.loads((files / "r.json").read_text())["meta"]["messages"]
+    assert messages == ["the image is constant: it has no contrast, so there are no dots to find."]
 
 
 def test_report_without_matplotlib_says_how_to_install_it(files, capsys, monkeypatch):
@@ -375,6 +478,17 @@ def test_every_command_has_help_with_examples(command, capsys):
     out = capsys.readouterr().out
     assert exit.value.code == 0 and "examples:" in out and f"mvcalib {command}" in out
     assert "exit codes: 0 success, 1 the work failed, 2 bad usage" in out
+
+
+def test_demo_help_says_float32_draws_another_scene(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["demo", "--help"])
+    out = capsys.readouterr().out
+    assert "the same in single precision" not in out
+    assert "a scene drawn and solved in single precision" in out and "other random poses" in out
+    # ... as it does: the same seed, other poses (the same intrinsics)
+    scenes = [mc.synthetic.paper_scene(noise=0.0, dtype=d) for d in (np.float64, np.float32)]
+    assert np.abs(np.asarray(scenes[0].pixels) - np.asarray(scenes[1].pixels)).max() > 10
 
 
 def test_console_script_and_no_command(capsys):

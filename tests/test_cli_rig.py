@@ -169,7 +169,7 @@ RIG = ["calibrate-rig", "obs.csv", "--out", "r.json"]
         ([*RIG, "--intrinsics", "two.json"], "two.json: 2 cameras; the observations have 4."),
         ([*RIG, "--intrinsics", "two.toml", "--fix", "intrinsics"],
          "two.toml: 2 cameras; the observations have 4."),
-        ([*RIG, "--intrinsics", "obs.csv"], "not a readable JSON rig file"),
+        ([*RIG, "--intrinsics", "obs.csv"], "obs.csv: a CSV file is not a rig; a rig is"),
         ([*RIG, "--intrinsics", "four.json", "--fix", "focus"], "unknown parameter 'focus'"),
         ([*RIG, "--reference", "7"], "`reference` 7 is not a camera of the 4"),
         ([*RIG, "--reference", "left"], "--reference 'left' is neither a camera index"),
