@@ -120,7 +120,8 @@ class RigCalibration(eqx.Module):
       planar target, 6 of a 3-D one) and were left out; `n_skipped` how many.
     - `position_std`: `(C, 3)` standard errors of each camera's centre (world units), and
       `rotation_std` `(C, 3)` of its rotation (degrees, about the camera's axes), in the gauge
-      of the reference camera (which has none); `parameter_std` `(C, P)` of the free parameters
+      of the solve's reference camera, which has none (`reference`; with `reference="target"`,
+      the camera that saw the most frames); `parameter_std` `(C, P)` of the free parameters
       `parameter_names`, whose covariance blocks are `covariance` `(C, P, P)`.
     - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful).
     """
@@ -185,6 +186,9 @@ class RigCalibration(eqx.Module):
                 f"{c:>6}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
                 f"{np.linalg.norm(pos[c]):>10.3g}  {Status(int(status[c])).name}"
             )
+        gauge = np.flatnonzero((status == Status.OK) & np.all(pos == 0, -1))
+        if len(gauge) == 1:  # (the solve's reference: the others' errors are relative to it)
+            lines.append(f"centre std: relative to camera {gauge[0]}, the solve's reference")
         return "\n".join(lines)
 
 
