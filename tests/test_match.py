@@ -181,12 +181,13 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     misplaced = json.loads((tmp_path / "r.json").read_text())["meta"]["misplaced"]
     assert list(misplaced) == ["68"]
     assert 0.05 < np.linalg.norm(np.subtract(misplaced["68"], (25.0, 25.0, 8.0))) < 0.3
-    # an unknown dot id in the clicks: exit 1, one line naming the row
+    # an unknown dot id in the clicks: bad input, exit 2, one line naming the row
     bad = cavity_clicks(root, tmp_path / "bad.csv", ["cam1.tif,999,10,10"])
     out = run_cli(
         "calibrate-images", *images, *common, "--clicks", bad, "--out", tmp_path / "b.json"
     )
-    assert out.returncode == 1 and "line 18: the target has no dot 999" in out.stderr
+    assert out.returncode == 2 and out.stderr.startswith("mvcalib: error: ")
+    assert "line 18: the target has no dot 999" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1, out.stderr
     # a corrupt photo: that camera flagged with the reason, exit 1, the others calibrated
     broken = tmp_path / "cam2.tif"
