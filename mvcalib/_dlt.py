@@ -724,6 +724,42 @@ def _chunk_size(n_cameras: int, n_points: int) -> int | None:
     return _sharding.cpu_chunk(n_cameras, max(CHUNK // n_points, 64))
 
 
+# A fit is made again without the points far off it (`near`), `REFITS` times: beyond `GATE` times
+# the noise level that the median distance gives (a 2-D Gaussian's median distance is
+# `RAYLEIGH_MEDIAN` of its standard deviation), where Gaussian noise puts no point (probability
+# exp(-50)). A planar view's homography (`_planar`), and the DLT that seeds a refinement with a
+# robust loss (`refit_near`).
+GATE = 10.0
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+REFITS = 2
+
+
+def near(distance, visible):
+    """The `visible` points whose `distance` (N,) from a fit is within `GATE` times the noise
+    level that the median distance implies."""
+    noise = _masked_median(distance, visible, sort=True) / RAYLEIGH_MEDIAN
+    return visible & (distance <= GATE * noise)
+
+
+def refit_near(world, pixels, mask, fit, rcond, max_relative_rms):
+    """`fit`, `solve_validated`'s answer, fitted again without the points far off it (`near`),
+    `REFITS` times; a camera keeps its fit where fewer than `MIN_POINTS` would remain."""
+
+    def refit(_, fit):
+        P = fit[0]
+        ones = jnp.ones(world.shape[:-1] + (1,), world.dtype)
+        p = jnp.concatenate([world, ones], -1) @ jnp.swapaxes(P, -1, -2)  # (..., N, 3)
+        distance = jnp.linalg.norm(p[..., :2] / p[..., 2:] - pixels, axis=-1)
+        kept = jnp.vectorize(near, signature="(n),(n)->(n)")(jnp.where(mask, distance, 0.0), mask)
+        n = jnp.sum(kept, -1)
+        again = (n >= _validate.MIN_POINTS) & (n < jnp.sum(mask, -1))
+        new = solve_validated(world, pixels, kept, rcond, max_relative_rms)
+        where = lambda a: again.reshape(again.shape + (1,) * (a.ndim - again.ndim))  # noqa: E731
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(where(a), a, b), new, fit)
+
+    return jax.lax.fori_loop(0, REFITS, refit, fit)
+
+
 @_buckets.jit
 def solve_validated(world, pixels, mask, rcond, max_relative_rms=DEFAULT_MAX_RELATIVE_RMS):
     """The DLT of every camera for inputs that passed `_validate.correspondences`, by `_solve`.

