@@ -167,6 +167,25 @@ def cavity(**detect):
     return target, views
 
 
+def box_corners_with_wild_dots(n_cameras: int, key: int = 0):
+    """`random_rig` of `n_cameras` box-corner cameras (`key`, 0.3 px of noise) with two of each
+    camera's dots moved by 50 px: `(rig, world, pixels, mask, clean)`, `clean` the mask without
+    the moved dots."""
+    import mvcalib as mc
+
+    rig = mc.synthetic.random_rig(
+        jax.random.key(key), n_cameras, mc.targets.box_corner_grid(4), noise=0.3
+    )
+    world, pixels, mask = (np.asarray(a) for a in (rig.world, rig.pixels, rig.mask))
+    pixels, clean, rng = pixels.copy(), mask.copy(), np.random.default_rng(key)
+    for c in range(n_cameras):
+        wild = rng.choice(np.flatnonzero(mask[c]), 2, replace=False)
+        angle = rng.uniform(0, 2 * np.pi, 2)
+        pixels[c, wild] += 50 * np.c_[np.cos(angle), np.sin(angle)]
+        clean[c, wild] = False
+    return rig, world, pixels, mask, clean
+
+
 def central_difference_check(f, x, *, eps=1e-6, rtol=1e-5, atol=1e-8, seed=0):
     """Compare jax.jvp of scalar-or-array `f` at `x` along a random direction with central
     differences (float64)."""

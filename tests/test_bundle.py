@@ -6,6 +6,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 import pytest
+from conftest import box_corners_with_wild_dots
 
 import mvcalib as mc
 
@@ -101,13 +102,8 @@ def test_a_robust_loss_sets_wild_points_aside_in_few_steps():
     squares ends with focal lengths up to 12 % from those of the clean dots' solve; `Cauchy(1.0)`
     within 0.5 %, in 16 steps (32 until 2026-12-05, when the steps' Gauss–Newton model was that
     of the residuals scaled by `sqrt(rho / r^2)`; now Ceres', `_refine._irls`)."""
-    rig = mc.synthetic.random_rig(jax.random.key(0), 4, mc.targets.box_corner_grid(4), noise=0.3)
-    world, clean, mask = (np.asarray(a) for a in (rig.world, rig.pixels, rig.mask))
-    pixels, rng = clean.copy(), np.random.default_rng(0)
-    for c in range(len(pixels)):
-        wild = rng.choice(np.flatnonzero(mask[c]), 2, replace=False)
-        angle = rng.uniform(0, 2 * np.pi, 2)
-        pixels[c, wild] += 50 * np.c_[np.cos(angle), np.sin(angle)]
+    rig, world, pixels, mask, _ = box_corners_with_wild_dots(4)
+    clean = np.asarray(rig.pixels)
     reference = mc.refine_rig(mc.calibrate(world, clean, mask).cameras, world, clean, mask)
     error = lambda r: np.abs(np.asarray(r.cameras.alpha_u / reference.cameras.alpha_u) - 1).max()  # noqa: E731
     seed = mc.calibrate(world, pixels, mask, max_relative_rms=np.inf).cameras  # (every one)

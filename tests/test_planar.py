@@ -184,21 +184,28 @@ def test_a_degenerate_view_is_flagged_and_the_others_still_calibrate(distorted):
     assert relative(out.K, K_TRUE) < 1e-8 and relative(out.dist, DIST) < 1e-8
 
 
+def _board_views(key, n_cameras, n_frames, camera, n_views):
+    """`(rig, pixels, mask)`: the first `n_views` views (4 or more corners) of `camera` of a
+    `board_rig` of a 6 x 8 board (`key`, 0.3 px of noise); NaN where a corner is hidden."""
+    import jax
+
+    rig = mc.synthetic.board_rig(
+        jax.random.key(key), n_cameras, n_frames, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
+    )
+    mask = np.asarray(rig.mask)[camera]
+    frames = np.flatnonzero(mask.sum(-1) >= 4)[:n_views]
+    mask = mask[frames]
+    return rig, np.where(mask[..., None], np.asarray(rig.pixels)[camera, frames], np.nan), mask
+
+
 def _partial_views():
     """40 views of a 6 x 8 board by one camera of a synthetic rig (`board_rig` key 0, camera 3;
     0.3 px of noise, k1 k2), the board cut by the image's edge in some: view 7 sees one row of
     it (no homography) and view 30 five points (4 in a row), whose homography the noise leaves
     poorly determined. OpenCV's `calibrateCamera` refuses these views (its homography of view
     7 fails); without view 7, its focal length of camera 1 of key 3 comes out 1.8 % off."""
-    import jax
-
-    rig = mc.synthetic.board_rig(
-        jax.random.key(0), 16, 250, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
-    )
-    mask = np.asarray(rig.mask)[3]
-    frames = np.flatnonzero(mask.sum(-1) >= 4)[:40]
-    pixels = np.where(mask[frames, :, None], np.asarray(rig.pixels)[3, frames], np.nan)
-    return rig, np.asarray(rig.target), pixels, mask[frames]
+    rig, pixels, mask = _board_views(key=0, n_cameras=16, n_frames=250, camera=3, n_views=40)
+    return rig, np.asarray(rig.target), pixels, mask
 
 
 def test_a_view_of_a_few_points_does_not_break_the_closed_form():
@@ -254,15 +261,7 @@ def test_robust_loss_with_wild_detections_keeps_every_view(loss):
     (Cauchy) and 0.11 % (Huber) off, 0.10 % without the wild points. Until 2026-12-05 the
     homographies took the wild points at full weight, two views started 118 and 60 degrees off and
     ended in another minimum: 0.5 % and 1.4 %."""
-    import jax
-
-    rig = mc.synthetic.board_rig(
-        jax.random.key(1), 4, 100, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
-    )
-    mask = np.asarray(rig.mask)[0]
-    frames = np.flatnonzero(mask.sum(-1) >= 4)[:30]
-    mask = mask[frames]
-    pixels = np.where(mask[..., None], np.asarray(rig.pixels)[0, frames], np.nan)
+    rig, pixels, mask = _board_views(key=1, n_cameras=4, n_frames=100, camera=0, n_views=30)
     rng = np.random.default_rng(1)
     where = np.argwhere(mask)
     wild = where[rng.choice(len(where), len(where) // 100, replace=False)]
@@ -278,17 +277,9 @@ def test_a_robust_loss_takes_the_steps_least_squares_takes():
     residuals scaled by `sqrt(rho / r^2)`, which steps twice too far where the loss is linear,
     as it is at the closed form's far corners). With Ceres' model (`_refine._irls`), 7 steps to
     the same answer."""
-    import jax
-
-    rig = mc.synthetic.board_rig(
-        jax.random.key(0), 16, 250, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
-    )
-    mask = np.asarray(rig.mask)[3]
-    frames = np.flatnonzero(mask.sum(-1) >= 4)[:40]
-    mask = mask[frames]
-    pixels = np.where(mask[..., None], np.asarray(rig.pixels)[3, frames], np.nan)
-    plain = mc.calibrate_planar(rig.target, pixels, mask)
-    robust = mc.calibrate_planar(rig.target, pixels, mask, loss=mc.Huber(1.0))
+    _, target, pixels, mask = _partial_views()
+    plain = mc.calibrate_planar(target, pixels, mask)
+    robust = mc.calibrate_planar(target, pixels, mask, loss=mc.Huber(1.0))
     assert bool(robust.converged) and int(robust.iterations) <= int(plain.iterations) + 3
     assert relative(np.asarray(robust.K), np.asarray(plain.K)) < 1e-4
 

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import box_corners_with_wild_dots
 from scipy.optimize import least_squares
 
 import mvcalib as mc
@@ -192,13 +193,7 @@ def test_cauchy_converges_where_its_gauss_newton_model_crept():
     off (until 2026-12-05: the Gauss–Newton model of the residuals scaled by `sqrt(rho / r^2)`,
     which steps twice too far where the loss is flat). Five of them, with Ceres' model
     (`_irls`): converged in 30-123 steps, focal lengths within 1.1 %."""
-    rig = mc.synthetic.random_rig(jax.random.key(0), 256, mc.targets.box_corner_grid(4), noise=0.3)
-    world, pixels, mask = (np.asarray(a) for a in (rig.world, rig.pixels, rig.mask))
-    pixels, rng = pixels.copy(), np.random.default_rng(0)
-    for c in range(len(pixels)):
-        wild = rng.choice(np.flatnonzero(mask[c]), 2, replace=False)
-        angle = rng.uniform(0, 2 * np.pi, 2)
-        pixels[c, wild] += 50 * np.c_[np.cos(angle), np.sin(angle)]
+    rig, world, pixels, mask, _ = box_corners_with_wild_dots(256)
     crept = [11, 31, 115, 127, 189]
     out = mc.calibrate(
         world, pixels[crept], mask[crept], refine=dict(loss=mc.Cauchy(1.0))
@@ -214,14 +209,7 @@ def test_a_robust_refinement_starts_from_the_dlt_of_the_points_near_it():
     moved by 50 px, the seed is the DLT of the other points. (On 256 such cameras, with
     `Huber(1.0)`: 2,959 steps in all against 5,602 from the DLT of every point, the largest
     focal-length error 4.8 % against 7.8 %; without the wild points 4.3 %.)"""
-    rig = mc.synthetic.random_rig(jax.random.key(0), 32, mc.targets.box_corner_grid(4), noise=0.3)
-    world, pixels, mask = (np.asarray(a) for a in (rig.world, rig.pixels, rig.mask))
-    pixels, clean, rng = pixels.copy(), mask.copy(), np.random.default_rng(0)
-    for c in range(len(pixels)):
-        wild = rng.choice(np.flatnonzero(mask[c]), 2, replace=False)
-        angle = rng.uniform(0, 2 * np.pi, 2)
-        pixels[c, wild] += 50 * np.c_[np.cos(angle), np.sin(angle)]
-        clean[c, wild] = False
+    _, world, pixels, mask, clean = box_corners_with_wild_dots(32)
     robust = mc.calibrate(world, pixels, mask, refine=dict(loss=mc.Huber(1.0)))
     oracle = mc.calibrate(world, pixels, clean, max_relative_rms=np.inf)
     unit = lambda P: np.asarray(P) / np.linalg.norm(np.asarray(P), axis=(-2, -1), keepdims=True)  # noqa: E731
