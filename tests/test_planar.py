@@ -256,8 +256,9 @@ def test_a_robust_loss_does_not_hide_a_view_that_fits_nothing():
 def test_robust_loss_with_wild_detections_keeps_every_view(loss):
     """30 views of a 6 x 8 board (`board_rig` key 1, camera 0), 1 % of the detections moved by
     about 50 px: every view stays OK (a wild point is the loss's business, not a POOR_FIT view)
-    and the solve converges. A Cauchy solve starts from the Huber answer: from the closed form
-    it stopped unconverged at 256 steps (until 2026-12-05). The focal length comes out 0.04 %
+    and the solve converges. A Cauchy solve from the closed form stopped unconverged at 256
+    steps with the steps' old model, and so started from the Huber answer (until 2026-12-05);
+    with Ceres' model it needs no such start. The focal length comes out 0.04 %
     (Cauchy) and 0.11 % (Huber) off, 0.10 % without the wild points. Until 2026-12-05 the
     homographies took the wild points at full weight, two views started 118 and 60 degrees off and
     ended in another minimum: 0.5 % and 1.4 %."""

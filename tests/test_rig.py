@@ -278,8 +278,9 @@ def test_a_camera_that_fits_nothing_links_no_other(monkeypatch):
 
 @pytest.mark.parametrize("loss", [mc.Huber(1.0), mc.Cauchy(1.0)])
 def test_robust_loss_keeps_the_accuracy_with_one_percent_wild_detections(loss):
-    """A redescending loss (Cauchy) starts from the Huber answer: from the closed form it gave
-    up whole frames and ended with every camera POOR_FIT (ValueError, until 2026-12-05)."""
+    """A redescending loss (Cauchy) from the closed form: with the steps' old model it gave up
+    whole frames and ended with every camera POOR_FIT (ValueError), and so it started from the
+    Huber answer (until 2026-12-05); with Ceres' model it needs no such start."""
     rig = _rig(noise=0.3)
     rng = np.random.default_rng(0)
     pixels, mask = np.asarray(rig.pixels).copy(), np.asarray(rig.mask)
