@@ -27,9 +27,9 @@ from ._refine import (
     LevenbergMarquardt,
     SecantLM,
     _free_parameters,
-    _irls,
     _pack,
-    _robust_weights,
+    _robust_model,
+    _robust_residuals,
     _scales,
     _skew_model,
     _unpack,
@@ -100,22 +100,18 @@ def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0):
 
 def _residuals(y, args):
     """The residuals, whose squares sum to the cost: the pixels' weighted by the robust loss
-    (`_robust_weights`), the anchors', the unseen cameras' pins."""
+    (`_refine._robust_residuals`), the anchors', the unseen cameras' pins."""
     out = _unweighted(y, args)
-    r, loss = out["pixels"], args[10]
-    out["pixels"] = r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+    out["pixels"] = _robust_residuals(out["pixels"], args[10])
     return out
 
 
 def _model(y, args):
-    """Gauss–Newton's model of the robust cost (`_irls`, `SecantLM`'s `options["model"]`): the
-    pixels' residuals scaled by `sqrt(rho')`, held out of their derivative; and the cost."""
+    """Gauss–Newton's model of the robust cost (`_refine._robust_model`, `SecantLM`'s
+    `options["model"]`): the pixels' model residuals, the others as they are; and the cost."""
     out = _unweighted(y, args)
-    r, loss = out["pixels"], args[10]
-    w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
-    cost = jnp.sum(rho) + sum(jnp.sum(v * v) for k, v in out.items() if k != "pixels")
-    out["pixels"] = r * jax.lax.stop_gradient(w)[..., None]
-    return out, cost
+    out["pixels"], cost = _robust_model(out["pixels"], args[10])
+    return out, cost + sum(jnp.sum(v * v) for k, v in out.items() if k != "pixels")
 
 
 def _unweighted(y, args):

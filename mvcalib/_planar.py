@@ -36,8 +36,8 @@ from ._refine import (
     Huber,
     SecantLM,
     _free_parameters,
-    _irls,
-    _robust_weights,
+    _robust_model,
+    _robust_residuals,
     default_solver,
     parameter_names,
 )
@@ -472,20 +472,18 @@ def _planar_unknowns(y, args):
 
 
 def _planar_residuals(y, args):
-    world, pixels, mask, loss = args[7:]
-    r = _planar_unknowns(y, args).project(world) - pixels
-    r = jnp.where(mask[..., None], r, 0.0)
-    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+    return _robust_residuals(_planar_unweighted(y, args), args[-1])
 
 
 def _planar_model(y, args):
-    """Gauss–Newton's model of the robust cost (`_irls`, `SecantLM`'s `options["model"]`): the
-    residuals scaled by `sqrt(rho')`, held out of their derivative, and the cost."""
-    world, pixels, mask, loss = args[7:]
+    """Gauss–Newton's model of the robust cost (`_refine._robust_model`)."""
+    return _robust_model(_planar_unweighted(y, args), args[-1])
+
+
+def _planar_unweighted(y, args):
+    world, pixels, mask, _ = args[7:]
     r = _planar_unknowns(y, args).project(world) - pixels
-    r = jnp.where(mask[..., None], r, 0.0)
-    w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
-    return r * jax.lax.stop_gradient(w)[..., None], jnp.sum(rho)
+    return jnp.where(mask[..., None], r, 0.0)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)

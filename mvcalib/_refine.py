@@ -546,6 +546,19 @@ def _irls(loss, s):
     return jnp.sqrt(drho), loss.rho(s)
 
 
+def _robust_residuals(r, loss):
+    """Points' residuals `r (..., 2)` weighted so that their squares sum to the robust cost
+    (`_robust_weights`): the objective, as least squares sees it."""
+    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[..., None]
+
+
+def _robust_model(r, loss):
+    """Points' residuals `r (..., 2)` for `SecantLM`'s `options["model"]`: scaled by `sqrt(rho')`
+    (`_irls`), held out of their derivative; and the cost."""
+    w, rho = _irls(loss, jnp.sum(r * r, axis=-1))
+    return r * jax.lax.stop_gradient(w)[..., None], jnp.sum(rho)
+
+
 def _robust_rows(rows, r, loss):
     """The rows `(d r_u, d r_v)` of `w(|r|^2) r` from those of `r (N, 2)`, point by point:
     `d (w r) = w dr + r w'(|r|^2) 2 r^T dr`."""

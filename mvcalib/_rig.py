@@ -62,7 +62,7 @@ from ._refine import (
     _pack,
     _parameters,
     _pixel_columns,
-    _robust_weights,
+    _robust_residuals,
     _skew_model,
     _unpack,
     parameter_names,
@@ -529,7 +529,7 @@ def _block_residuals(yc, yf, cam, frame, data, free, loss):
     p = _parameters(yc * move, p0, scale, free) if free else p0
     Rf, tf = _frame_pose(yf * move_f, R0f, t0f, distance)
     r = jnp.where(mask[:, None], _project(_unpack(p, R0), target @ Rf.T + tf, mask) - pixels, 0.0)
-    return r * _robust_weights(loss, jnp.sum(r * r, axis=-1))[:, None]
+    return _robust_residuals(r, loss)
 
 
 def _project(camera: Camera, world, mask):
