@@ -131,8 +131,13 @@ class ImageCalibration:
                 f"dot {i}: the images put it at ({where}), not where the target says; "
                 "left out of the calibration"
             )
-        names = [Status(int(s)).name.lower() for s in status]
-        return "\n".join(lines) + "\n\n" + format_table(self.calibration.report, status=names)
+        files = [os.path.basename(n) for n in self.names]  # the table's camera, by its image
+        table = format_table(
+            self.calibration.report,
+            status=[Status(int(s)).name.lower() for s in status],
+            names=files if len(set(files)) == len(files) else self.names,
+        )
+        return "\n".join(lines) + "\n\n" + table
 
 
 def _as_list(images) -> list:

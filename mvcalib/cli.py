@@ -63,7 +63,10 @@ EXAMPLES = {
                                   one camera per photo of the box-corner target
   mvcalib calibrate-images cam1.tif cam2.tif --target dots.txt --clicks clicks.csv \\
       --focal 5800 --bright-dots --out rig.json
-                                  any target (id x y z per line), labelled from clicked dots""",
+                                  any target (id x y z per line), labelled from clicked dots
+  mvcalib calibrate-images cal/cam[1-4].tif --target cal/target_on_a_side.txt \\
+      --clicks parameters/man_ori.par --focal 5800 --bright-dots --refine --out rig.json
+                                  an OpenPTV set-up: its four clicked dots per camera""",
     "demo": """\
   mvcalib demo                    the paper's experiment with 0.3 px noise
   mvcalib demo --noise-free       no noise: the four snapshots agree to 1e-6 px
@@ -305,9 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     images.add_argument(
         "--clicks",
-        metavar="CSV",
+        metavar="FILE",
         help="clicked seeds, CSV with the header image,dot_id,pixel_x,pixel_y (image: the file's "
-        "name as given, or its position from 0); 6+ dots per image, or 4+ with --focal",
+        "name as given, or its position from 0), or OpenPTV's man_ori.par (its man_ori.dat "
+        "beside it; cameras in the order of the images); 6+ dots per image, or 4+ with --focal",
     )
     images.add_argument(
         "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
@@ -1051,7 +1055,7 @@ def _check_seeds(args, target, seeds) -> None:
     elif seeds is None:
         raise ValueError(
             f"{args.target}: this target has no fiducial dots to label the photos from; give "
-            f"--clicks CSV, the dots clicked in each photo ({need})."
+            f"--clicks FILE, the dots clicked in each photo ({need})."
         )
     elif any(seed is None for seed in seeds):
         missing = args.images[[seed is None for seed in seeds].index(True)]

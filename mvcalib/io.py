@@ -1323,6 +1323,9 @@ def load_clicks(path, images, target) -> list:
     for an image without clicks. `ValueError` naming the file and line for an unknown image or
     dot, or a field that is not a number.
 
+    `path` may also be OpenPTV's `man_ori.par`, with its `man_ori.dat` beside it
+    (`load_openptv_clicks`): four clicks per camera, the cameras in the order of `images`.
+
     **Example:**
 
     ```python
@@ -1335,6 +1338,8 @@ def load_clicks(path, images, target) -> list:
 
     ```
     """
+    if pathlib.Path(path).suffix == ".par":
+        return _openptv_seeds(pathlib.Path(path), images, target)
     columns, table = _csv_table(path, ("image", "dot_id", "pixel_x", "pixel_y"), strict=False)
     images = [str(p) for p in images]
     names = [pathlib.Path(p).name for p in images]
@@ -1360,6 +1365,24 @@ def load_clicks(path, images, target) -> list:
     for i, rows in clicked.items():
         seeds[i] = (np.array([xy for xy, _ in rows]), np.array([dot for _, dot in rows]))
     return seeds
+
+
+def _openptv_seeds(par: pathlib.Path, images, target) -> list:
+    """`load_clicks` of OpenPTV's `man_ori.par` and the `man_ori.dat` beside it."""
+    dat = par.with_suffix(".dat")
+    if not dat.is_file():
+        raise ValueError(f"{par}: OpenPTV's clicked pixels, {dat.name}, are not beside it.")
+    ids, pixels = load_openptv_clicks(par, dat)
+    if len(ids) != len(images):
+        raise ValueError(
+            f"{par}: clicks for {len(ids)} cameras, and {len(images)} images given; give every "
+            "camera's image, in OpenPTV's order."
+        )
+    unknown = ~np.isin(ids, target.ids)
+    if unknown.any():
+        c, k = np.argwhere(unknown)[0]
+        raise ValueError(f"{par}, line {4 * c + k + 1}: the target has no dot {ids[c, k]}")
+    return list(zip(pixels, ids))
 
 
 def load_openptv_clicks(man_ori_par, man_ori_dat) -> tuple[np.ndarray, np.ndarray]:

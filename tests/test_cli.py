@@ -369,7 +369,7 @@ def files(tmp_path, monkeypatch, cache_off):
           "--out", "r.json"], 2, "image1.csv, line 2: no image '1' among the images given"),
         (["calibrate-images", "dots.png", "--target", "target.txt", "--out", "r.json"], 2,
          "target.txt: this target has no fiducial dots to label the photos from; give --clicks "
-         "CSV, the dots clicked in each photo (six or more dots not all on one plane, or four or "
+         "FILE, the dots clicked in each photo (six or more dots not all on one plane, or four or "
          "more and --focal PX)."),
         (["calibrate-images", "dots.png", "other.png", "--target", "target.txt", "--clicks",
           "four.csv", "--focal", "900", "--out", "r.json"], 2,

@@ -2,6 +2,7 @@
 bad input, and OpenPTV's real cavity photographs seeded by its own clicked points."""
 
 import json
+import re
 
 import jax
 import numpy as np
@@ -167,11 +168,13 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     target = root / "cal" / "target_on_a_side.txt"
     clicks = cavity_clicks(root, tmp_path / "clicks.csv")
     common = ["--target", target, "--focal", 70.0 / 0.012, "--bright-dots"]
+    man_ori = root / "parameters" / "man_ori.par"  # OpenPTV's clicks as they are
     out = run_cli(
-        "calibrate-images", *images, *common, "--clicks", clicks, "--out", tmp_path / "r.json"
+        "calibrate-images", *images, *common, "--clicks", man_ori, "--out", tmp_path / "r.json"
     )
     assert out.returncode == 0, out.stderr
     assert "4 of 4 cameras calibrated" in out.stdout
+    assert re.search(r"^ *cam4\.tif +-?0\.\d+ ", out.stdout, re.M), out.stdout  # Table I
     cameras, names = mc.io.load_json(tmp_path / "r.json")
     assert cameras.batch_shape == (4,) and np.all(np.isfinite(np.asarray(cameras.alpha_u)))
     messages = json.loads((tmp_path / "r.json").read_text())["meta"]["messages"]

@@ -82,3 +82,24 @@ def test_openptv_clicks_are_read_and_bad_ones_refused(tmp_path):
     dat.write_text("1 2\n3 4\n5 6\n")
     with pytest.raises(ValueError, match="not 4 per camera"):
         mc.io.load_openptv_clicks(par, dat)
+
+
+def test_openptv_clicks_seed_the_images_in_order(tmp_path):
+    """`load_clicks` of OpenPTV's `man_ori.par` (the CLI's `--clicks`): a seed per camera."""
+    target = mc.targets.Target(
+        "t", np.zeros((4, 3)), 1.0, np.arange(4), np.eye(4), ids=[2, 3, 71, 73]
+    )
+    par, dat = tmp_path / "man_ori.par", tmp_path / "man_ori.dat"
+    par.write_text("2\n3\n71\n73\n73\n71\n3\n2\n")
+    dat.write_text("".join(f"{x} {x + 1}\n" for x in range(8)))
+    seeds = mc.io.load_clicks(par, ["a.tif", "b.tif"], target)
+    assert [seed[1].tolist() for seed in seeds] == [[2, 3, 71, 73], [73, 71, 3, 2]]
+    assert seeds[1][0][0].tolist() == [3.5, 4.5]
+    with pytest.raises(ValueError, match="clicks for 2 cameras, and 3 images given"):
+        mc.io.load_clicks(par, ["a.tif", "b.tif", "c.tif"], target)
+    par.write_text("2\n3\n71\n73\n73\n71\n4\n2\n")
+    with pytest.raises(ValueError, match="man_ori.par, line 7: the target has no dot 4"):
+        mc.io.load_clicks(par, ["a.tif", "b.tif"], target)
+    dat.unlink()
+    with pytest.raises(ValueError, match="man_ori.dat, are not beside it"):
+        mc.io.load_clicks(par, ["a.tif", "b.tif"], target)
