@@ -33,6 +33,7 @@ from ._refine import (
     _scales,
     _skew_model,
     _unpack,
+    takes_model,
 )
 from ._registration import RigidTransform
 from ._report import masked_rms
@@ -520,9 +521,8 @@ def _inverse_cholesky_factor_transpose(A):
 
 @eqx.filter_jit
 def _solve(fn, args, y0, solver, max_steps):
-    # (with a robust loss, `SecantLM`'s steps take Ceres' model of the cost: `_irls`)
-    robust = args[10] is not None and isinstance(solver, SecantLM)
-    options = {"model": _model} if robust else {}
+    # (with a robust loss, the steps take Ceres' model of the cost: `_irls`)
+    options = {"model": _model} if args[10] is not None and takes_model(solver) else {}
     return optx.least_squares(
         fn, solver, y0, args, options=options, max_steps=max_steps, throw=False
     )

@@ -34,12 +34,12 @@ from ._refine import (
     GROUPS,
     Cauchy,
     Huber,
-    SecantLM,
     _free_parameters,
     _robust_model,
     _robust_residuals,
     default_solver,
     parameter_names,
+    takes_model,
 )
 from ._registration import RigidTransform
 from ._report import ReprojectionReport, compute_report, format_table
@@ -515,7 +515,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     # system is singular along them: a least-squares (SVD) solve gives them zero derivative.
     adjoint = optx.ImplicitAdjoint(linear_solver=lx.SVD())
     # (with a robust loss, the step's model is Ceres': `_irls`)
-    options = {"model": _planar_model} if loss is not None and isinstance(solver, SecantLM) else {}
+    options = {"model": _planar_model} if loss is not None and takes_model(solver) else {}
     sol = optx.least_squares(
         _planar_residuals, solver, y0, args, options=options, max_steps=max_steps,
         adjoint=adjoint, throw=False,

@@ -290,12 +290,51 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
     solve the slowest member sets the pace, so that cost every member: triangulating 1200
     points in 8 views with `refine=True` took 62 against 47 ms; a joint rig of 12 cameras, one
     hidden, 13 steps (7 lost to rounding) against 6.
+
+    It takes `options={"model": model}` as `SecantLM` does (`_modelled`): with a robust loss its
+    steps then linearise Ceres' model of the cost rather than the weighted residuals. Anchored
+    rigs of 12 and 24 cameras with wild dots (`refine_rig`, matrix-free), `Huber(1.0)` 29 and 25
+    steps against 31 and 36, `Cauchy(1.0)` 27 and 51 against 38 and 106, the same cameras;
+    `calibrate_planar` in float32, 16 cameras of 40 views, 1 % wild: Huber 663 steps against
+    875, Cauchy 805 against 1184.
     """
 
     def __init__(self, rtol, atol, linear_solver=None):
         linear_solver = lx.QR() if linear_solver is None else linear_solver
         super().__init__(rtol=rtol, atol=atol, linear_solver=linear_solver)
         self.search = _RoundingTrustRegion()
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return super().init(_modelled(fn, options), y, args, options, f_struct, aux_struct, tags)
+
+    def step(self, fn, y, args, options, state, tags):
+        return super().step(_modelled(fn, options), y, args, options, state, tags)
+
+
+def takes_model(solver) -> bool:
+    """Whether `solver` takes `options={"model": model}`: its steps then linearise Gauss–Newton's
+    model of a robust cost (`_irls`) rather than `fn`, which stays the objective."""
+    return isinstance(solver, (SecantLM, LevenbergMarquardt))
+
+
+def _modelled(fn, options):
+    """`fn`, or with `options={"model": model}` (as `SecantLM` takes it) the residuals whose
+    linearisation is `model`'s and whose squares sum to its cost: `model`'s residuals, and one
+    more held out of every derivative, `sqrt(cost - |residuals|^2)` (>= 0 for a concave loss,
+    `rho(s) >= rho'(s) s`), an entry "rest" of a dict of residuals (`refine_rig`'s)."""
+    model = options.get("model")
+    if model is None:
+        return fn
+
+    def modelled(y, args):
+        residuals, cost = model(y, args)
+        rest = cost - sum(jnp.sum(r * r) for r in jax.tree_util.tree_leaves(residuals))
+        rest = jax.lax.stop_gradient(jnp.sqrt(jnp.maximum(rest, 0.0)))
+        if isinstance(residuals, dict):
+            return {**residuals, "rest": rest}, None
+        return (residuals, rest), None
+
+    return modelled
 
 
 def _spd_solve(M, B):
@@ -652,15 +691,15 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     args = _arguments(cam, world, pixels, mask, loss)
     p0, _, scale, world, pixels, _, _ = args
     residuals = functools.partial(_residuals, free=free)
-    jacobian_t = functools.partial(_residual_jacobian_t, free=free)
+    # with a loss, Gauss–Newton's model of the robust cost, as Ceres builds it (`_irls`);
+    # `residuals` stay the objective (their squares sum to it) for the implicit derivatives
+    modelled = loss is not None and takes_model(solver)
+    model = functools.partial(_model, free=free)
+    jacobian_t = functools.partial(_residual_jacobian_t, free=free, irls=modelled)
     y0 = jnp.zeros(len(free), dtype)
     options = {"jacobian_transpose": jacobian_t} if isinstance(solver, SecantLM) else {}
-    if options and loss is not None:
-        # Gauss–Newton's model of the robust cost, as Ceres builds it (`_irls`); `residuals`
-        # stay the objective (their squares sum to it) for the implicit derivatives
-        model = functools.partial(_model, free=free)
-        jacobian_t = functools.partial(_residual_jacobian_t, free=free, irls=True)
-        options = {"model": model, "jacobian_transpose": jacobian_t}
+    if modelled:
+        options["model"] = model
     sol = optx.least_squares(
         residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False,
         adjoint=_adjoint(),
