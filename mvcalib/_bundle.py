@@ -4,6 +4,7 @@ the target in the global frame (the registration), and optionally the 3-D points
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import time
 from collections.abc import Sequence
@@ -16,7 +17,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _sharding, _small, _triangulate, _validate
+from . import _buckets, _sharding, _small, _triangulate, _validate
 from ._camera import Camera, finite_cameras, usable_rig, where_cameras
 from ._refine import (
     _RESULT_MESSAGES,
@@ -190,13 +191,15 @@ def refine_rig(
 
     ```
     """
-    world, pixels, mask = _validate.correspondences(world, pixels, mask)
+    # (checked in NumPy when concrete: compiling nothing but the solve's program)
+    host = _validate.is_concrete(world, pixels, mask)
+    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if host else jnp)
     if world.ndim != 2 or pixels.ndim != 3:
         raise ValueError(
             f"refine_rig takes one set of points `world` (N, 3) seen by a rig, `pixels` "
             f"(C, N, 2); got {tuple(world.shape)} and {tuple(pixels.shape)}."
         )
-    C = pixels.shape[0]
+    C, N = pixels.shape[:2]
     if cameras.batch_shape != (C,):
         raise ValueError(f"`cameras` must be a rig of {C} cameras; got {cameras.batch_shape}.")
     if points not in ("fixed", "free"):
@@ -211,59 +214,71 @@ def refine_rig(
         anchor_ids, anchor_xyz = None, None
     else:
         anchor_ids = np.asarray(anchors[0], dtype=int)
-        anchor_xyz = _validate.floating("anchors[1]", anchors[1], (None, 3)).astype(dtype)
+        anchor_xyz = _validate.floating("anchors[1]", anchors[1], (None, 3), xp=np).astype(dtype)
         if anchor_xyz.shape != (len(anchor_ids), 3) or len(anchor_ids) < 3:
             raise ValueError(
                 "`anchors` = (ids, global_xyz) with >= 3 ids and xyz of shape (ids, 3)."
             )
-    transform = RigidTransform.identity(dtype) if transform is None else transform
+    leaves = jax.tree_util.tree_leaves(cameras)
+    if _validate.is_concrete(*leaves):
+        finite = [np.isfinite(np.asarray(x)).reshape(C, -1).all(-1) for x in leaves]
+        if not np.any(np.all(finite, axis=0)):
+            raise ValueError("no camera of the rig has a finite seed (all parameters finite).")
     free = _free_parameters(distortion, fix, skew, cameras.lens)
-    cameras = _skew_model(cameras, skew, fix)
     shared = bool(shared_intrinsics)
     cam_free = tuple(i for i in free if not (shared and i not in POSE_INDICES))
     shared_free = tuple(i for i in free if shared and i not in POSE_INDICES)
+    # Only what the problem determines is estimated. The placement needs anchors on a known
+    # target: images alone say nothing about it, and with free points T X = (T G)(G^-1 X)
+    # makes it redundant.
+    unknowns = {"cams": (C, len(cam_free))}
+    if shared_free:
+        unknowns["shared"] = (len(shared_free),)
+    if anchor_ids is not None and points == "fixed":
+        unknowns["T"] = (6,)
+    if points == "free":
+        unknowns["X"] = (N, 3)
+    if solver is None:
+        n_anchor = 0 if anchor_ids is None else len(anchor_ids)
+        solver = default_solver(
+            dtype,
+            2 * C * N + 3 * n_anchor,
+            sum(int(np.prod(shape)) for shape in unknowns.values()),
+            anchor_ids=anchor_ids,
+            free_points=points == "free",
+        )
+    anchors = (
+        None if anchor_ids is None else (anchor_ids, anchor_xyz, np.asarray(anchor_sigma, dtype))
+    )
+    return _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver,
+                       unknowns=unknowns, free=(cam_free, shared_free), shared=shared,
+                       skew=skew, fix=fix, max_steps=max_steps)  # fmt: skip
 
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver, *, unknowns, free,
+                shared, skew, fix, max_steps) -> RigRefinement:  # fmt: skip
+    """`refine_rig` after its checks, as one program: compiled once for every shape of rig (its
+    steps one by one from Python compiled a program each, ~100 of them: 3 s of a first call)."""
+    dtype = world.dtype
+    cam_free, shared_free = free
+    transform = RigidTransform.identity(dtype) if transform is None else transform
+    cameras = _skew_model(cameras, skew, fix)
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     # A camera without a finite seed (one that `calibrate` could not solve is NaN) takes no
     # part: its points are hidden and its seed replaced by the first usable camera's, so that no
     # NaN reaches the others (it did: the whole rig failed); it comes back NaN.
     cameras, mask, used = usable_rig(cameras, mask)
-    if _validate.is_concrete(used) and not np.any(np.asarray(used)):
-        raise ValueError("no camera of the rig has a finite seed (all parameters finite).")
     if shared:  # every camera starts from the first usable camera's intrinsics
         cameras = _with_intrinsics_of(cameras, 0)
     p0 = jax.vmap(_pack)(cameras)
     scale = jax.vmap(_scales)(p0)
-    # Only what the problem determines is estimated. The placement needs anchors on a known
-    # target: images alone say nothing about it, and with free points T X = (T G)(G^-1 X)
-    # makes it redundant.
-    y0 = {"cams": jnp.zeros((C, len(cam_free)), dtype)}
-    if shared_free:
-        y0["shared"] = jnp.zeros(len(shared_free), dtype)
-    if anchor_ids is not None and points == "fixed":
-        y0["T"] = jnp.zeros(6, dtype)
-    if points == "free":
-        y0["X"] = jnp.zeros_like(world)
-    anchors_arg = (
-        None if anchor_ids is None else jnp.asarray(anchor_ids),
-        anchor_xyz,
-        jnp.asarray(anchor_sigma, dtype),
-    )
+    y0 = {name: jnp.zeros(shape, dtype) for name, shape in unknowns.items()}
+    anchors_arg = (None, None, jnp.ones((), dtype)) if anchors is None else anchors
     free_idx = jnp.asarray(cam_free, dtype=int)
     shared_idx = jnp.asarray(shared_free, dtype=int)
     args = (p0, cameras.R, scale, free_idx, shared_idx, transform, world, pixels, mask,
             anchors_arg, loss, ~jnp.any(mask, axis=1))  # fmt: skip
-    if solver is None:
-        n_anchor = 0 if anchor_ids is None else len(anchor_ids)
-        n_params = sum(x.size for x in y0.values())
-        solver = default_solver(
-            dtype,
-            2 * mask.size + 3 * n_anchor,
-            n_params,
-            anchor_ids=anchors_arg[0],
-            free_points=points == "free",
-        )
-
     sol = _solve(_residuals, args, y0, solver, max_steps)
     refined, placement, new_world = _unknowns(
         sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
@@ -272,9 +287,10 @@ def refine_rig(
     before = jnp.where(used, masked_rms(cameras, transform.apply(world), pixels, mask), nan)
     after = jnp.where(used, masked_rms(refined, placement.apply(new_world), pixels, mask), nan)
     refined = where_cameras(used, refined, jax.tree_util.tree_map(lambda x: nan, refined))
-    if anchor_ids is None:
-        anchor_rms = jnp.asarray(jnp.nan, dtype)
+    if anchors is None:
+        anchor_rms = nan
     else:
+        anchor_ids, anchor_xyz, _ = anchors
         d = placement.apply(new_world[anchor_ids]) - anchor_xyz
         anchor_rms = jnp.sqrt(jnp.mean(jnp.sum(d * d, -1)))
     return RigRefinement(
