@@ -219,10 +219,8 @@ def refine_rig(
             raise ValueError(
                 "`anchors` = (ids, global_xyz) with >= 3 ids and xyz of shape (ids, 3)."
             )
-    leaves = jax.tree_util.tree_leaves(cameras)
-    if _validate.is_concrete(*leaves):
-        finite = [np.isfinite(np.asarray(x)).reshape(C, -1).all(-1) for x in leaves]
-        if not np.any(np.all(finite, axis=0)):
+    if _validate.is_concrete(*jax.tree_util.tree_leaves(cameras)):
+        if not np.any(np.asarray(finite_cameras(cameras))):
             raise ValueError("no camera of the rig has a finite seed (all parameters finite).")
     free = _free_parameters(distortion, fix, skew, cameras.lens)
     shared = bool(shared_intrinsics)

@@ -291,9 +291,14 @@ class Camera(eqx.Module):
 
 
 def finite_cameras(cameras: Camera) -> Bool[Array, " C"]:
-    """Per camera of a rig `(C,)`: whether all its parameters are finite."""
-    leaves = jax.tree_util.tree_leaves(cameras)
-    return jnp.stack([jnp.isfinite(x).reshape(x.shape[0], -1).all(-1) for x in leaves]).all(0)
+    """Per camera of a rig `(C,)`: whether all its parameters are finite (in NumPy where they
+    are concrete: `_validate.derived`)."""
+    return _validate.derived(
+        lambda xp, *leaves: xp.stack(
+            [xp.isfinite(x).reshape(x.shape[0], -1).all(-1) for x in leaves]
+        ).all(0),
+        *jax.tree_util.tree_leaves(cameras),
+    )
 
 
 def where_cameras(keep: Bool[Array, " C"], cameras: Camera, other: Camera) -> Camera:
