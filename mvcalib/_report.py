@@ -86,24 +86,25 @@ def compute_report(cameras, world, pixels, mask) -> ReprojectionReport:
 
 
 def format_table(report: ReprojectionReport, status=None, names=None) -> str:
-    """Table I as text, one row per camera (flattened over batch axes), the cameras numbered
-    from 1 as in the paper, or named by `names`."""
+    """Table I as text, one row per camera (flattened over batch axes), each named by `names`
+    or by its index along the cameras' axis (from 0, as `report.rms[i]`); with `status`, a
+    word per camera after its row."""
     if not _validate.is_concrete(report.rms):
         return repr(report)
     cols = [
         np.atleast_1d(np.asarray(getattr(report, k))).reshape(-1)
         for k in ("mean_x", "mean_y", "rms", "max", "n_points")
     ]
-    names = [str(i + 1) for i in range(len(cols[0]))] if names is None else list(names)
+    names = [str(n) for n in (range(len(cols[0])) if names is None else names)]
     width = max(6, *map(len, names))
     header = (
-        f"{'camera':>{width}} {'mean err x':>11} {'mean err y':>11} {'RMS':>9} {'max':>9} "
-        f"{'points':>6}"
+        f"{'camera':<{width}} {'mean err x':>11} {'mean err y':>11} {'RMS':>9} {'max':>9} "
+        f"{'points':>6}" + ("  status" if status is not None else "")
     )
-    lines = ["Back-projection error per camera (pixels; reprojected - observed)", header]
+    lines = ["Table I: back-projection error per camera (pixels; reprojected - observed)", header]
     for i, (mx, my, rms, mxx, n) in enumerate(zip(*cols)):
-        line = f"{names[i]:>{width}} {mx:>11.4f} {my:>11.4f} {rms:>9.4f} {mxx:>9.4f} {int(n):>6}"
+        line = f"{names[i]:<{width}} {mx:>11.4f} {my:>11.4f} {rms:>9.4f} {mxx:>9.4f} {int(n):>6}"
         if status is not None:
-            line += f"  {status[i]}"
+            line = f"{line}  {status[i]}".rstrip()
         lines.append(line)
     return "\n".join(lines)

@@ -570,26 +570,6 @@ def _calibrated(cameras):
     return np.all([np.isfinite(np.asarray(a)).reshape(len(a), -1).all(-1) for a in leaves], 0)
 
 
-def _table(names, report, status=None) -> str:
-    """Table I with the cameras' names."""
-    import numpy as np
-
-    cols = [
-        np.asarray(getattr(report, k)).reshape(-1)
-        for k in ("mean_x", "mean_y", "rms", "max", "n_points")
-    ]
-    width = max(6, *(len(n) for n in names))
-    lines = [
-        "Table I: back-projection error per camera (pixels; reprojected - observed)",
-        f"{'camera':<{width}} {'mean err x':>11} {'mean err y':>11} {'RMS':>9} {'max':>9} "
-        f"{'points':>6}" + ("  status" if status is not None else ""),
-    ]
-    for i, (mx, my, rms, largest, n) in enumerate(zip(*cols)):
-        line = f"{names[i]:<{width}} {mx:>11.4f} {my:>11.4f} {rms:>9.4f} {largest:>9.4f} {n:>6}"
-        lines.append(line + (f"  {status[i]}" if status is not None else ""))
-    return "\n".join(lines)
-
-
 def _count(n: int, what: str) -> str:
     return f"{n} {what}" + ("" if n == 1 else "s")
 
@@ -600,6 +580,7 @@ def _calibrate(args) -> int:
 
     from . import io
     from ._pipeline import calibrate
+    from ._report import format_table
     from ._status import Status
 
     say = _progress(args)
@@ -624,7 +605,8 @@ def _calibrate(args) -> int:
     result = calibrate(data.world, np.nan_to_num(data.pixels), data.mask, refine=refine)
     status = np.asarray(result.status)
     ok = status == Status.OK
-    print(_table(data.cameras, result.report, [Status(int(s)).name.lower() for s in status]))
+    words = [Status(int(s)).name.lower() for s in status]
+    print(format_table(result.report, status=words, names=data.cameras))
     out = pathlib.Path(args.out)
     if args.format == "json":
         meta = {"correspondences": str(args.correspondences), "refined": refine is not False}
@@ -885,7 +867,7 @@ def _report(args) -> int:
     import numpy as np
 
     from . import io
-    from ._report import reprojection_report
+    from ._report import format_table, reprojection_report
 
     say = _progress(args)
     if args.plot:
@@ -915,7 +897,7 @@ def _report(args) -> int:
     report = jax.jit(reprojection_report)(cameras, data.world, np.nan_to_num(pixels), mask)
     status = ["" if c else "not calibrated" for c in calibrated]
     status = [s or ("no points" if n == 0 else "") for s, n in zip(status, report.n_points)]
-    print(_table(names, report, status if any(status) else None))
+    print(format_table(report, status=status if any(status) else None, names=names))
     r = np.asarray(report.residuals)[mask]
     length = np.linalg.norm(r, axis=-1)
     c, p = np.argwhere(mask)[np.argmax(length)]

@@ -16,9 +16,13 @@ from . import _buckets
 from ._pipeline import Calibration, calibrate
 from ._registration import RigidTransform, procrustes, procrustes_paper, to_global
 from ._render import render
+from ._report import format_table
 from .io import write_atomic
 from .synthetic import PaperScene, paper_scene
 from .targets import box_corner
+
+# the paper's snapshots are numbered from 1 (its Table I)
+_SNAPSHOTS = tuple(str(i) for i in range(1, 5))
 
 if TYPE_CHECKING:  # the photographs' demo imports scikit-image: only where it runs
     from ._detect import Detection
@@ -140,8 +144,8 @@ def format_result(result: DemoResult) -> str:
             f"{float(est.skew[i]):7.3f} {centre_err[i]:9.3f} mm"
         )
     w("")
-    w("2. Table I: back-projection error of M on the calibration dots")
-    w(str(cal.report))
+    w("2. M on the calibration dots")
+    w(format_table(cal.report, names=_SNAPSHOTS))
     w("")
     w("3. Local -> global registration from 18 dots (Y = R X + T)")
     local = scene.world[np.asarray(scene.registration_ids)]
@@ -338,7 +342,8 @@ def format_images(demo: ImageDemoResult) -> str:
             f"  ({100 * demo.focal_error[i]:.3f} %), rotation off by "
             f"{demo.rotation_error[i]:.3f} deg"
         )
-    out += ["", "3. Table I on the labelled dots", str(demo.result.calibration.report), ""]
+    table = format_table(demo.result.calibration.report, names=_SNAPSHOTS)
+    out += ["", "3. On the labelled dots", table, ""]
     out.append("4. The fixed room point from every snapshot's camera in the global frame")
     for i, px in enumerate(demo.unified):
         out.append(f"   snapshot {i + 1}: pixel ({px[0]:9.3f}, {px[1]:9.3f})")

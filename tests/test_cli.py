@@ -55,7 +55,7 @@ def test_demo_with_noise_reports_expected_scatter():
     assert result.returncode == 0, result.stderr
     assert "expected scatter from 0.3 px" in result.stdout
     rows = re.findall(
-        r"^\s+(\d)\s+(-?[\d.]+)\s+(-?[\d.]+)\s+([\d.]+)\s+([\d.]+)\s+8$", result.stdout, re.M
+        r"^\s*(\d)\s+(-?[\d.]+)\s+(-?[\d.]+)\s+([\d.]+)\s+([\d.]+)\s+8$", result.stdout, re.M
     )
     assert len(rows) == 4  # Table I: four cameras, 8 calibration points each
     assert all(0.05 < float(r[3]) < 0.6 for r in rows)  # RMS near the 0.3 px noise

@@ -80,7 +80,7 @@ def test_bad_images_are_flagged_and_the_good_ones_calibrated_as_if_alone(tmp_pat
     ):
         assert word in message, message
     text = str(result)
-    assert "missing.png" in text and "calibrated" in text and "Back-projection" in text
+    assert "missing.png" in text and "calibrated" in text and "back-projection" in text
     with pytest.raises(mc.CalibrationError, match="6 of 8 images gave no camera"):
         result.raise_if_failed()
     with pytest.raises(mc.CalibrationError):
