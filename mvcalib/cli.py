@@ -98,7 +98,7 @@ _DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4")  # a pinhole's and a fisheye'
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line and exit code 2, no usage dump or traceback
-        self.exit(2, f"mvcalib: error: {message} (see `mvcalib --help`)\n")
+        self.exit(2, f"mvcalib: error: {message} (see `{self.prog} --help`)\n")
 
 
 class _Failed(Exception):
@@ -136,8 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
+    parser.commands = {}  # each command's parser, whose errors point at its own help
+
     def command(name, help, description):
-        return sub.add_parser(
+        parser.commands[name] = sub.add_parser(
             name,
             help=help,
             description=description,
@@ -145,6 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
             formatter_class=argparse.RawDescriptionHelpFormatter,
             parents=[common],
         )
+        return parser.commands[name]
 
     size = dict(nargs=2, type=int, metavar=("WIDTH", "HEIGHT"))
 
@@ -442,11 +445,13 @@ def _check_usage(parser, args) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
-    _check_usage(parser, args)
+    if unknown:  # (the command's own error, which points at its help)
+        parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
+    _check_usage(parser.commands[args.command], args)
     try:
         import jax
 

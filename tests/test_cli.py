@@ -406,6 +406,9 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
     assert err.startswith("mvcalib: error: ") == (code == 2), err  # bad input says `error:`
     assert not list(files.glob(".*.tmp")) and not list(files.glob("folder.csv/*"))
     assert not (files / "r.json").exists()  # nothing written for bad input
+    if "(see `" in err:  # a usage error points at the help of the command that was misused
+        command = f"mvcalib {args[0]}" if args[0] in cli.COMMANDS else "mvcalib"
+        assert err.rstrip().endswith(f"(see `{command} --help`)"), err
 
 
 @pytest.mark.parametrize(
