@@ -250,7 +250,8 @@ def refine_rig(
     )
     return _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver,
                        unknowns=unknowns, free=(cam_free, shared_free), shared=shared,
-                       skew=skew, fix=fix, max_steps=max_steps)  # fmt: skip
+                       skew=skew, fix=fix, max_steps=max_steps,
+                       quick=C * N <= QUICK_SIZE)  # fmt: skip
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
@@ -303,6 +304,10 @@ def _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver, 
         used=used,
     )
 
+
+# Rigs of at most this many camera-points are compiled quickly (`_buckets.jit`): their first
+# call is mostly compiling.
+QUICK_SIZE = _buckets.COMPACT
 
 # Jacobian entries up to which LM steps are dense (`default_solver`): with free points 3e7 (240
 # MB in float64), with a known target 2e5.
