@@ -164,9 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument(
         "--format",
         choices=("json", "opencv", "colmap"),
-        default="json",
-        help="json (default; records failed cameras too), opencv (FileStorage YAML) or colmap "
-        "(text model in the folder --out; needs --image-size and --refine or --distortion)",
+        help="json (records failed cameras too), opencv (FileStorage YAML) or colmap (text "
+        "model in the folder --out; needs --image-size and --refine or --distortion); default "
+        "from --out: .json, .yml or .yaml",
     )
     calibrate.add_argument(
         "--refine",
@@ -416,6 +416,8 @@ def _check_usage(parser, args) -> None:
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
     if args.command == "triangulate" and suffix != ".csv":
         parser.error(f"--out must be a .csv file; got {args.out}")
+    if args.command == "calibrate":
+        _check_format(parser, args, suffix)
     if args.command == "calibrate" and args.format == "colmap":
         if args.image_size is None:
             parser.error("--format colmap needs --image-size WIDTH HEIGHT")
@@ -441,6 +443,23 @@ def _check_usage(parser, args) -> None:
         )
     if args.command == "calibrate-images" and args.focal is not None and not args.focal > 0:
         parser.error("--focal must be positive (a focal-length guess in pixels)")
+
+
+_FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv"}  # `calibrate --out`'s
+
+
+def _check_format(parser, args, suffix: str) -> None:
+    """`calibrate`'s --format, from --out's suffix where not given; a file whose suffix says
+    another format is a usage error (a JSON rig in `rig.txt` was written silently)."""
+    if args.format is None:
+        if suffix not in _FORMATS:
+            parser.error(
+                f"--out {args.out}: a .json or .yml/.yaml file, or a folder with --format colmap"
+            )
+        args.format = _FORMATS[suffix]
+    elif args.format != "colmap" and _FORMATS.get(suffix) != args.format:
+        wanted = " or ".join(k for k, v in _FORMATS.items() if v == args.format)
+        parser.error(f"--format {args.format} writes a {wanted} file; got --out {args.out}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -337,6 +337,10 @@ def files(tmp_path, monkeypatch, cache_off):
          2, "needs --refine or --distortion"),
         (["calibrate", "corr.csv", "--out", "r.json", "--distortion", "k9"], 2, "'k9' is not"),
         (["calibrate", "corr.csv", "--out", "r.json", "--format", "ply"], 2, "invalid choice"),
+        (["calibrate", "corr.csv", "--out", "r.txt"], 2,
+         "--out r.txt: a .json or .yml/.yaml file, or a folder with --format colmap"),
+        (["calibrate", "corr.csv", "--out", "r.json", "--format", "opencv"], 2,
+         "--format opencv writes a .yml or .yaml file; got --out r.json"),
         (["calibrate", "tracks.csv", "--out", "r.json"], 2, "no world_x, world_y, world_z"),
         (["calibrate", "five.csv", "--out", "r.json"], 2, "at least 6 points are needed"),
         (["calibrate", "rig.json", "--out", "r.json"], 2, "not a correspondences file"),
@@ -409,6 +413,14 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
     if "(see `" in err:  # a usage error points at the help of the command that was misused
         command = f"mvcalib {args[0]}" if args[0] in cli.COMMANDS else "mvcalib"
         assert err.rstrip().endswith(f"(see `{command} --help`)"), err
+
+
+def test_calibrate_writes_the_format_its_out_file_names(files, capsys):
+    """Without --format, `calibrate` writes what --out's suffix says: .yml is OpenCV's YAML."""
+    assert cli.main(["calibrate", "corr.csv", "--out", "r.yml", "--quiet"]) == 0
+    assert "(opencv)" in capsys.readouterr().out
+    cameras, names = mc.io.load_opencv("r.yml")
+    assert names == ["a", "b"] and cameras.batch_shape == (2,)
 
 
 @pytest.mark.parametrize(
