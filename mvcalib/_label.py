@@ -202,12 +202,18 @@ def _candidates(major, distances, min_ratio: float, max_candidates: int) -> np.n
     half of the dots and never side by side, a small dot. `distances` is the blobs' distance
     matrix with an infinite diagonal.
     """
+    ratio = _size_ratios(major, distances)
+    order = np.argsort(-ratio, kind="stable")
+    return order[ratio[order] > min_ratio][:max_candidates]
+
+
+def _size_ratios(major, distances) -> np.ndarray:
+    """Each blob's major axis over the second smallest of its six nearest neighbours' (see
+    `_candidates`): how much larger than its neighbours a dot is printed."""
     k = min(6, len(major) - 1)
     neighbours = np.argsort(distances, axis=1)[:, :k]
     reference = np.sort(major[neighbours], axis=1)[:, min(1, k - 1)]
-    ratio = major / reference
-    order = np.argsort(-ratio, kind="stable")
-    return order[ratio[order] > min_ratio][:max_candidates]
+    return major / reference
 
 
 def _score(P, world, blobs, tol) -> np.ndarray:

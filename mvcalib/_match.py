@@ -27,8 +27,8 @@ import numpy as np
 from . import _label
 from ._camera import Camera
 from ._detect import Detection
-from ._label import Labels
-from .targets import Target
+from ._label import Labels, _size_ratios
+from .targets import Target, _grid_symmetries
 
 __all__ = ["label_grid", "match_dots"]
 
@@ -403,7 +403,15 @@ def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
         return np.where(h[:, 2:] > 0, h[:, :2] / h[:, 2:], np.nan)
 
 
-def label_grid(detection: Detection, rows: int, cols: int, *, max_rounds: int = 30) -> Labels:
+def label_grid(
+    detection: Detection,
+    rows: int,
+    cols: int,
+    *,
+    markers=(),
+    min_ratio: float = 1.3,
+    max_rounds: int = 30,
+) -> Labels:
     """Label the dots of a printed `rows x cols` grid (`mvcalib.targets.dot_grid`) with no seed:
     the grid's topology from neighbouring blobs, grown by homographies; flagged rather than
     guessed where the grid's position is not determined.
@@ -419,7 +427,12 @@ def label_grid(detection: Detection, rows: int, cols: int, *, max_rounds: int = 
     position is unknown. A symmetric grid is then
     labelled up to its half turn: ids start at the corner nearest the image's top left, which
     keeps a planar calibration (the board's pose absorbs the turn) but not the ids' identity
-    across cameras.
+    across cameras. With `markers` (the ids of dots printed larger, `targets.dot_grid(...,
+    markers=)`, a grid's `fiducials`) the labelling is the one move of the grid onto itself (a
+    turn, or a mirroring: the board seen from its other side) that puts them on blobs larger
+    than their neighbours (major axis over `min_ratio` times theirs, as `mvcalib.label_dots`
+    finds fiducials), and small ones elsewhere: all of the markers found, or all but one, and
+    every other move off by two blobs or more; else the view is flagged.
 
     **Example:**
 
@@ -437,6 +450,10 @@ def label_grid(detection: Detection, rows: int, cols: int, *, max_rounds: int = 
     """
     blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
     M, B = rows * cols, len(blobs)
+    markers = np.unique(np.asarray(markers, dtype=int).reshape(-1))
+    if len(markers) and (markers.min() < 0 or markers.max() >= M):
+        raise ValueError(f"`markers` are dot ids, 0 to {M - 1}; got {markers.tolist()}.")
+    moves = _grid_symmetries(rows, cols)
     if B < 6:
         return Labels.failed(M, B, f"only {B} blobs found")
     d = np.linalg.norm(blobs[:, None] - blobs[None], axis=-1)
@@ -517,10 +534,24 @@ def label_grid(detection: Detection, rows: int, cols: int, *, max_rounds: int = 
     if extent != (cols, rows):  # (a transposed lattice: mirror it back to the board's side)
         ids = row * cols + (cols - 1 - col)
     # of the grid's two half-turn labellings, the one with dot 0 nearest the image's top left
-    pixels = blobs[np.array(list(lattice.values()))]
+    members = np.array(list(lattice.values()))
+    pixels = blobs[members]
     turned = M - 1 - ids
     if np.sum(pixels[np.argmin(turned)]) < np.sum(pixels[np.argmin(ids)]):
         ids = turned
+    if len(markers):  # the move that puts the markers on the large blobs, and them only
+        large = _size_ratios(np.asarray(detection.major, float).reshape(-1), d)[members] > min_ratio
+        claimed = [np.isin(move[ids], markers) for move in moves]
+        misfits = np.array([np.sum(large != marker) for marker in claimed])
+        best = int(np.argmin(misfits))
+        found = int(np.sum(large & claimed[best]))
+        if found < max(1, len(markers) - 1) or np.sort(misfits)[1] < misfits[best] + 2:
+            return Labels.failed(
+                M, B, f"the markers do not tell the grid's orientation: {found} of "
+                f"{len(markers)} found as large blobs, and the grid's turns and mirrorings "
+                f"misplace {np.sort(misfits).tolist()} large or small blobs",
+            )  # fmt: skip
+        ids = moves[best][ids]
     index = np.full(M, -1)
     index[ids] = list(lattice.values())
     P = _homography(np.c_[ids % cols, ids // cols].astype(float), pixels)  # grid units -> pixels

@@ -151,12 +151,22 @@ def dot_grid(
     spacing: float,
     *,
     asymmetric: bool = False,
+    markers=(),
+    marker_scale: float = 1.6,
     dot_radius: float | None = None,
     units: str = "mm",
 ) -> Target:
     """A printed grid of `rows x cols` dots on the plane z = 0, `spacing` apart (ids row by row).
     `asymmetric=True` is OpenCV's asymmetric circles grid: every other row shifted by half a
     spacing, rows half a spacing apart. The dots' radius defaults to a fifth of the spacing.
+
+    `markers`: ids of dots printed `marker_scale` times larger (the target's `fiducials`), from
+    which `mvcalib.label_grid` tells the grid's orientation: without them a symmetric grid is
+    labelled up to its half turn (and a square one up to its quarter turns), which keeps one
+    camera's planar calibration but not the dots' identity across the cameras of a rig. They
+    must look different after every turn or mirroring that maps the grid onto itself (which
+    side of the board a camera sees is told by them too), e.g. four dots in an L with unequal
+    arms at one corner, `(0, 1, 2, cols)`.
 
     **Example:**
 
@@ -176,7 +186,35 @@ def dot_grid(
     y = r * spacing * (0.5 if asymmetric else 1.0)
     points = np.c_[x, y, np.zeros_like(x)].astype(float)
     name = f"{'asymmetric ' if asymmetric else ''}dot grid {rows} x {cols}"
-    return _printed(name, points, spacing, dot_radius, units)
+    grid = _printed(name, points, spacing, dot_radius, units)
+    markers = np.unique(np.asarray(markers, dtype=int).reshape(-1))
+    if not len(markers):
+        return grid
+    if markers.min() < 0 or markers.max() >= rows * cols:
+        raise ValueError(f"`markers` are dot ids, 0 to {rows * cols - 1}; got {markers.tolist()}.")
+    if not asymmetric and any(
+        np.array_equal(np.sort(move[markers]), markers) for move in _grid_symmetries(rows, cols)[1:]
+    ):
+        raise ValueError(
+            f"the markers {markers.tolist()} look the same after a turn or a mirroring of the "
+            "grid, so they cannot tell its orientation: e.g. four dots in an L with unequal "
+            "arms at one corner, (0, 1, 2, cols)."
+        )
+    radius = np.where(np.isin(np.arange(rows * cols), markers), marker_scale, 1.0) * grid.radii
+    return dataclasses.replace(grid, dot_radius=radius, fiducials=markers)
+
+
+def _grid_symmetries(rows: int, cols: int) -> list[np.ndarray]:
+    """The moves that map a `rows x cols` grid onto itself, each as the dot ids `(M,)` that the
+    dots move to (ids row by row), the identity first: the turns in its plane (the half turn;
+    for a square grid the quarter turns too), and each of them after a mirroring (the board seen
+    from its other side)."""
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    turns = [r * cols + c, (rows - 1 - r) * cols + (cols - 1 - c)]
+    if rows == cols:
+        turns += [c * cols + (rows - 1 - r), (cols - 1 - c) * cols + r]
+    mirrored = r * cols + (cols - 1 - c)
+    return turns + [turn[mirrored] for turn in turns]
 
 
 def plate(

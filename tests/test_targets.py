@@ -68,6 +68,19 @@ def test_dot_grids_and_plates():
         mc.targets.dot_grid(1, 5, 1.0)
 
 
+def test_a_grid_s_markers_are_larger_dots_that_break_its_symmetry():
+    grid = mc.targets.dot_grid(4, 5, 10.0, markers=(0, 1, 2, 5), marker_scale=1.5)
+    assert grid.fiducials.tolist() == [0, 1, 2, 5]
+    assert grid.radii[[0, 1, 2, 5]].tolist() == [3.0] * 4 and set(grid.radii[3:5]) == {2.0}
+    # an L with equal arms looks the same from the board's back: a mirroring about a diagonal
+    with pytest.raises(ValueError, match="look the same after a turn or a mirroring"):
+        mc.targets.dot_grid(5, 5, 10.0, markers=(0, 1, 5))
+    with pytest.raises(ValueError, match="look the same after a turn or a mirroring"):
+        mc.targets.dot_grid(4, 5, 10.0, markers=(0, 19))  # opposite corners: the half turn
+    with pytest.raises(ValueError, match="dot ids, 0 to 19"):
+        mc.targets.dot_grid(4, 5, 10.0, markers=(20,))
+
+
 def test_openptv_clicks_are_read_and_bad_ones_refused(tmp_path):
     par, dat = tmp_path / "man_ori.par", tmp_path / "man_ori.dat"
     par.write_text("2\n3\n71\n73\n1\n3\n69\n73\n")
