@@ -30,7 +30,7 @@ _EXPORTS = {
     "_camera": ("Camera", "distort", "image_to_pixel", "pixel_to_image", "undistort_points"),
     "_detect": ("Detection", "detect_dots"),
     "_dlt": ("dlt",),
-    "_images": ("ImageCalibration", "calibrate_images", "read_image"),
+    "_images": ("ImageCalibration", "calibrate_images", "observe_grid", "read_image"),
     "_label": ("Labels", "label_dots"),
     "_match": ("label_grid", "match_dots"),
     "_pipeline": ("Calibration", "CalibrationError", "calibrate"),
@@ -87,6 +87,7 @@ if typing.TYPE_CHECKING:
     from ._dlt import dlt as dlt
     from ._images import ImageCalibration as ImageCalibration
     from ._images import calibrate_images as calibrate_images
+    from ._images import observe_grid as observe_grid
     from ._images import read_image as read_image
     from ._label import Labels as Labels
     from ._label import label_dots as label_dots

@@ -422,3 +422,77 @@ def calibrate_images(
     if strict:
         result.raise_if_failed()
     return result
+
+
+def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None,
+                 progress: bool | None = None):  # fmt: skip
+    """A rig's observations of a printed dot grid moved through the volume, from its photos:
+    each photo's dots detected (`detect_dots`) and labelled (`label_grid`, with the grid's
+    `fiducials` as its markers, `targets.dot_grid(..., markers=)`, which give every dot the same
+    id in every camera), for `mvcalib.calibrate_rig`.
+
+    **Arguments:**
+
+    - `photos`: per camera, its photos in frame order (paths or images; None where it took
+      none): `photos[c][f]`, every camera with as many frames.
+    - `grid`: a rectangular grid of dots (`mvcalib.targets.dot_grid`), its markers as its
+      `fiducials`; without them only one camera's views are labelled consistently.
+    - `names`: the cameras' names; default `cam0`, `cam1`, ...
+    - `detect`: options of `detect_dots` (e.g. `dark_dots=False`).
+    - `progress`: a line on stderr per photo flagged or unreadable (default: with more than 20
+      photos).
+
+    **Returns:** an `mvcalib.io.Observations`; a photo that could not be read or labelled leaves
+    its frame unseen by that camera, and `observations.mask.any(-1)` says which were labelled.
+
+    **Example:** two cameras, one frame each.
+
+    ```python
+    >>> import numpy as np, mvcalib as mc
+    >>> grid = mc.targets.dot_grid(6, 8, 20.0, markers=(0, 1, 2, 8))
+    >>> R = np.diag([1.0, -1.0, -1.0])  # looking down at the grid's printed side
+    >>> cameras = [mc.Camera(900.0, 900.0, 480.0, 360.0, R, -R @ np.array([x, 50.0, 420.0]))
+    ...            for x in (40.0, 100.0)]
+    >>> photos = [[mc.synthetic.render(c, grid, (960, 720), key=0)] for c in cameras]
+    >>> obs = mc.observe_grid(photos, grid)
+    >>> obs.pixels.shape, obs.mask.sum(-1).tolist()
+    ((2, 1, 48, 2), [[48], [48]])
+
+    ```
+    """
+    from ._match import label_grid
+    from .io import Observations
+
+    points = np.asarray(grid.points, float)
+    xs, ys = (np.unique(np.round(points[:, k], 9)) for k in (0, 1))
+    rows, cols = len(ys), len(xs)
+    if rows * cols != len(points) or np.any(points[:, 2] != 0):
+        raise ValueError(f"{grid.name!r} is not a rectangular grid of dots (targets.dot_grid).")
+    photos = [list(camera) for camera in photos]
+    C, F = len(photos), max((len(camera) for camera in photos), default=0)
+    if C == 0 or F == 0 or any(len(camera) != F for camera in photos):
+        raise ValueError(
+            "`photos` holds each camera's photos in frame order, as many for every camera "
+            f"(None where one took none); got {[len(camera) for camera in photos]}."
+        )
+    names = [f"cam{c}" for c in range(C)] if names is None else [str(n) for n in names]
+    if len(names) != C:
+        raise ValueError(f"{len(names)} names for {C} cameras.")
+    progress = C * F > 20 if progress is None else progress
+    pixels = np.full((C, F, len(points), 2), np.nan)
+    for c, f in np.ndindex(C, F):
+        photo = photos[c][f]
+        if photo is None:
+            continue
+        try:
+            image = read_image(photo) if isinstance(photo, (str, os.PathLike)) else photo
+            labels = label_grid(detect_dots(image, **(detect or {})), rows, cols,
+                                markers=grid.fiducials)  # fmt: skip
+        except ValueError as error:
+            labels = Labels.failed(len(points), 0, str(error))
+        if labels.ok:
+            pixels[c, f] = np.where(labels.mask[:, None], labels.pixels, np.nan)
+        elif progress:
+            print(f"{names[c]}, frame {f}: {labels.message}", file=sys.stderr)
+    return Observations(points, pixels, np.isfinite(pixels[..., 0]), names, np.arange(F),
+                        np.asarray(grid.ids))  # fmt: skip

@@ -306,41 +306,42 @@ def test_marked_grids_are_labelled_in_their_own_orientation(rows, cols):
 
 def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
     """The rig workflow from photographs: a marked dot grid in 40 poses before 4 cameras (a
-    `board_rig`, each camera on the board's printed side, z towards the board, as OpenCV's), each
-    photo labelled by `label_grid` alone, then `calibrate_rig`: every camera, centres within
+    `board_rig`, each camera on the board's printed side, z towards the board, as OpenCV's),
+    `observe_grid` labelling each photo alone, then `calibrate_rig`: every camera, centres within
     1 mm of 2-3 m baselines (measured 0.3-0.7 mm), focal lengths within 2e-4."""
     import jax
 
-    markers = (0, 1, 2, 9)
-    grid = mc.targets.dot_grid(7, 9, 0.05, markers=markers, units="m")
+    grid = mc.targets.dot_grid(7, 9, 0.05, markers=(0, 1, 2, 9), units="m")
     rig = mc.synthetic.board_rig(
         jax.random.key(1), n_cameras=4, n_frames=40, target=grid.points, distortion=False
     )
     C, F, N = rig.mask.shape
-    pixels, mask = np.zeros((C, F, N, 2)), np.zeros((C, F, N), bool)
-    wrong = 0
     printed_side = np.tile([0.0, 0.0, -1.0], (N, 1))  # the board's -z side faces its cameras
+    photos = [[None] * F for _ in range(C)]
     for c, f in zip(*np.nonzero(rig.mask.all(-1))):  # the frames that show the whole grid
         camera = rig.cameras[c]
         R = np.asarray(camera.R) @ np.asarray(rig.poses.R[f])
         t = np.asarray(camera.R) @ np.asarray(rig.poses.t[f]) + np.asarray(camera.t)
         view = mc.Camera(camera.alpha_u, camera.alpha_v, camera.u0, camera.v0, R, t)
-        image = mc.synthetic.render(view, grid, rig.image_size, normals=printed_side, key=int(f))
-        labels = mc.label_grid(mc.detect_dots(image), 7, 9, markers=markers)
-        if labels.ok:
-            off = np.abs(labels.pixels - np.asarray(rig.pixels_true[c, f]))[labels.mask]
-            wrong += off.max() > 1
-            pixels[c, f], mask[c, f] = np.nan_to_num(labels.pixels), labels.mask
-    assert wrong == 0 and mask.any(-1).sum() >= 30  # measured: 34 of 35 photos labelled
-    out = mc.calibrate_rig(grid.points, pixels, mask)
+        photos[c][f] = mc.synthetic.render(view, grid, rig.image_size, normals=printed_side,
+                                           key=int(f))  # fmt: skip
+    obs = mc.observe_grid(photos, grid)
+    labelled = obs.mask.any(-1)
+    off = np.abs(obs.pixels - np.asarray(rig.pixels_true))[obs.mask]
+    assert off.max() < 1 and labelled.sum() >= 30  # measured: all 35 labelled
+    out = mc.calibrate_rig(obs.target, obs.pixels, obs.mask)
     assert bool(out.ok.all()), out
     R0, t0 = np.asarray(rig.cameras.R[0]), np.asarray(rig.cameras.t[0])
     truth = np.asarray(rig.cameras.center) @ R0.T + t0  # in camera 0's frame, as the solve's
     error = np.linalg.norm(np.asarray(out.cameras.center) - truth, axis=-1)
-    print(f"centre errors {1000 * error.round(5)} mm")
+    print(f"{labelled.sum()} photos labelled; centre errors {1000 * error.round(5)} mm")
     assert error.max() < 1e-3
     focal = np.abs(np.asarray(out.cameras.alpha_u) / np.asarray(rig.cameras.alpha_u) - 1)
     assert focal.max() < 2e-4
+    with pytest.raises(ValueError, match="as many for every camera"):
+        mc.observe_grid([photos[0], photos[1][:3]], grid)
+    with pytest.raises(ValueError, match="not a rectangular grid"):
+        mc.observe_grid(photos, mc.targets.box_corner())
 
 
 def test_a_grid_with_a_missing_border_row_is_flagged():
