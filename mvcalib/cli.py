@@ -67,6 +67,12 @@ EXAMPLES = {
   mvcalib calibrate-images cal/cam[1-4].tif --target cal/target_on_a_side.txt \\
       --clicks parameters/man_ori.par --focal 5800 --bright-dots --refine --out rig.json
                                   an OpenPTV set-up: its four clicked dots per camera""",
+    "observe-grid": """\
+  mvcalib observe-grid --grid 7 9 0.05 --markers 0 1 2 9 --camera cam0/*.png \\
+      --camera cam1/*.png --out observations.csv
+                                  a marked dot grid's dots in every photo, labelled
+  mvcalib calibrate-rig observations.csv --out rig.json
+                                  ... and the rig from them""",
     "demo": """\
   mvcalib demo                    the paper's experiment with 0.3 px noise
   mvcalib demo --noise-free       no noise: the four snapshots agree to 1e-6 px
@@ -326,6 +332,32 @@ def build_parser() -> argparse.ArgumentParser:
         "where the calibrated camera predicts the missed ones (mvcalib.second_look)",
     )
 
+    grid = command(
+        "observe-grid",
+        "a rig's observations of a marked dot grid, from photos",
+        "Detect and label a printed dot grid (`mvcalib.targets.dot_grid`) in every photo of "
+        "every camera, the grid moved through the rig's volume, and write the observations "
+        "for `mvcalib calibrate-rig`. A few dots printed larger (--markers) give every dot the "
+        "same id in every camera; photos that cannot be labelled with certainty are left out.",
+    )
+    grid.add_argument(
+        "--grid", nargs=3, required=True, type=float, metavar=("ROWS", "COLS", "SPACING"),
+        help="the grid's rows and columns of dots and their spacing (the rig's units)",
+    )  # fmt: skip
+    grid.add_argument(
+        "--markers", nargs="+", type=int, default=(), metavar="ID",
+        help="ids (row by row from 0) of the dots printed larger, e.g. 0 1 2 COLS",
+    )  # fmt: skip
+    grid.add_argument(
+        "--marker-scale", type=float, default=1.6, help="markers' size over the others' (1.6)"
+    )
+    grid.add_argument(
+        "--camera", nargs="+", action="append", required=True, metavar="IMG",
+        help="one camera's photos in frame order ('-' where it took none); once per camera",
+    )  # fmt: skip
+    grid.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
+    grid.add_argument("--out", required=True, metavar="CSV", help="observations file to write")
+
     demo = command(
         "demo",
         "run the paper's 4-snapshot experiment on a synthetic scene",
@@ -392,6 +424,19 @@ def _check_usage(parser, args) -> None:
         missing = [p for p in args.images if not pathlib.Path(p).is_file()]
         if missing:
             parser.error(f"no such image file: {missing[0]}")
+    if args.command == "observe-grid":
+        photos = [p for camera in args.camera for p in camera if p != "-"]
+        missing = [p for p in photos if not pathlib.Path(p).is_file()]
+        if missing:
+            parser.error(f"no such image file: {missing[0]}")
+        if len({len(camera) for camera in args.camera}) > 1:
+            parser.error(
+                f"every --camera takes as many photos, one per frame ('-' where a camera took "
+                f"none); got {[len(camera) for camera in args.camera]}"
+            )
+        rows, cols, spacing = args.grid
+        if rows != int(rows) or cols != int(cols) or rows < 2 or cols < 2 or not spacing > 0:
+            parser.error(f"--grid ROWS COLS SPACING: got {' '.join(map(str, args.grid))}")
     if args.command == "calibrate-images":
         for flag in ("target", "clicks"):
             if getattr(args, flag) and not pathlib.Path(getattr(args, flag)).is_file():
@@ -414,7 +459,7 @@ def _check_usage(parser, args) -> None:
     suffix = pathlib.Path(getattr(args, "out", "") or "").suffix.lower()
     if args.command == "detect" and suffix not in (".csv", ".json"):
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
-    if args.command == "triangulate" and suffix != ".csv":
+    if args.command in ("triangulate", "observe-grid") and suffix != ".csv":
         parser.error(f"--out must be a .csv file; got {args.out}")
     if args.command == "calibrate":
         _check_format(parser, args, suffix)
@@ -1083,6 +1128,33 @@ def _check_seeds(args, target, seeds) -> None:
             )
 
 
+def _observe_grid(args) -> int:
+    import numpy as np
+
+    from . import io, targets
+    from ._images import observe_grid
+
+    rows, cols, spacing = args.grid
+    grid = targets.dot_grid(int(rows), int(cols), spacing, markers=args.markers,
+                            marker_scale=args.marker_scale)  # fmt: skip
+    photos = [[None if p == "-" else p for p in camera] for camera in args.camera]
+    names = [f"cam{c}" for c in range(len(photos))]
+    say = _progress(args)
+    say(f"labelling {_count(sum(p is not None for c in photos for p in c), 'photo')} of "
+        f"{_count(len(photos), 'camera')}")  # fmt: skip
+    obs = observe_grid(photos, grid, names=names, detect=dict(dark_dots=not args.bright_dots),
+                       progress=not args.quiet)  # fmt: skip
+    labelled = np.asarray(obs.mask).any(-1)
+    for name, camera, row in zip(names, photos, labelled):
+        print(f"{name}: {int(row.sum())} of {sum(p is not None for p in camera)} photos labelled")
+    io.save_observations(args.out, obs)
+    print(f"observations written to {args.out}")
+    if not labelled.any(-1).all():
+        missing = ", ".join(n for n, row in zip(names, labelled) if not row.any())
+        raise _Failed(f"no photo of {missing} could be labelled.")
+    return 0
+
+
 def _demo(args) -> int:
     import numpy as np
 
@@ -1135,6 +1207,7 @@ COMMANDS = {
     "report": _report,
     "triangulate": _triangulate,
     "calibrate-images": _calibrate_images,
+    "observe-grid": _observe_grid,
     "demo": _demo,
 }
 

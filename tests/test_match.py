@@ -1,6 +1,7 @@
 """Seeded labelling (`mc.match_dots`): synthetic photographs with known cameras, wrong seeds,
 bad input, and OpenPTV's real cavity photographs seeded by its own clicked points."""
 
+import functools
 import json
 import re
 
@@ -304,11 +305,11 @@ def test_marked_grids_are_labelled_in_their_own_orientation(rows, cols):
     assert turned >= 2  # (what the markers are for)
 
 
-def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
-    """The rig workflow from photographs: a marked dot grid in 40 poses before 4 cameras (a
-    `board_rig`, each camera on the board's printed side, z towards the board, as OpenCV's),
-    `observe_grid` labelling each photo alone, then `calibrate_rig`: every camera, centres within
-    1 mm of 2-3 m baselines (measured 0.3-0.7 mm), focal lengths within 2e-4."""
+@functools.cache
+def marked_grid_rig():
+    """Photos of a 7 x 9 dot grid with four markers in 40 poses before 4 cameras (a `board_rig`,
+    each camera on the board's printed side, z towards the board, as OpenCV's), where a camera
+    sees the whole grid (else None): `(grid, rig, photos[c][f])`."""
     import jax
 
     grid = mc.targets.dot_grid(7, 9, 0.05, markers=(0, 1, 2, 9), units="m")
@@ -325,15 +326,28 @@ def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
         view = mc.Camera(camera.alpha_u, camera.alpha_v, camera.u0, camera.v0, R, t)
         photos[c][f] = mc.synthetic.render(view, grid, rig.image_size, normals=printed_side,
                                            key=int(f))  # fmt: skip
+    return grid, rig, photos
+
+
+def centre_errors(rig, cameras):
+    """Each camera's centre error against `rig`'s, both in camera 0's frame (the solve's)."""
+    R0, t0 = np.asarray(rig.cameras.R[0]), np.asarray(rig.cameras.t[0])
+    truth = np.asarray(rig.cameras.center) @ R0.T + t0
+    return np.linalg.norm(np.asarray(cameras.center) - truth, axis=-1)
+
+
+def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
+    """The rig workflow from photographs (`marked_grid_rig`): `observe_grid` labels each photo
+    alone, then `calibrate_rig`: every camera, centres within 1 mm of 2-3 m baselines
+    (measured 0.3-0.7 mm), focal lengths within 2e-4."""
+    grid, rig, photos = marked_grid_rig()
     obs = mc.observe_grid(photos, grid)
     labelled = obs.mask.any(-1)
     off = np.abs(obs.pixels - np.asarray(rig.pixels_true))[obs.mask]
     assert off.max() < 1 and labelled.sum() >= 30  # measured: all 35 labelled
     out = mc.calibrate_rig(obs.target, obs.pixels, obs.mask)
     assert bool(out.ok.all()), out
-    R0, t0 = np.asarray(rig.cameras.R[0]), np.asarray(rig.cameras.t[0])
-    truth = np.asarray(rig.cameras.center) @ R0.T + t0  # in camera 0's frame, as the solve's
-    error = np.linalg.norm(np.asarray(out.cameras.center) - truth, axis=-1)
+    error = centre_errors(rig, out.cameras)
     print(f"{labelled.sum()} photos labelled; centre errors {1000 * error.round(5)} mm")
     assert error.max() < 1e-3
     focal = np.abs(np.asarray(out.cameras.alpha_u) / np.asarray(rig.cameras.alpha_u) - 1)
@@ -342,6 +356,33 @@ def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
         mc.observe_grid([photos[0], photos[1][:3]], grid)
     with pytest.raises(ValueError, match="not a rectangular grid"):
         mc.observe_grid(photos, mc.targets.box_corner())
+
+
+def test_cli_observes_a_marked_grid_and_calibrates_the_rig(tmp_path):
+    """`mvcalib observe-grid` then `mvcalib calibrate-rig`, on the photos as PNG files."""
+    import imageio.v3 as iio
+
+    grid, rig, photos = marked_grid_rig()
+    cameras = []
+    for c, camera in enumerate(photos):
+        cameras.append(["--camera"])
+        for f, photo in enumerate(camera):
+            path = tmp_path / f"cam{c}_{f:02d}.png"
+            if photo is not None:
+                iio.imwrite(path, photo)
+            cameras[-1].append(path if photo is not None else "-")
+    observations = tmp_path / "observations.csv"
+    flags = ["--grid", 7, 9, 0.05, "--markers", 0, 1, 2, 9, "--out", observations]
+    out = run_cli("observe-grid", *flags, *[a for camera in cameras for a in camera])
+    assert out.returncode == 0, out.stderr
+    assert "cam1: " in out.stdout and "photos labelled" in out.stdout
+    out = run_cli("calibrate-rig", observations, "--out", tmp_path / "rig.json", "--quiet")
+    assert out.returncode == 0, out.stdout + out.stderr
+    rig_cameras, names = mc.io.load_json(tmp_path / "rig.json")
+    assert names == ["cam0", "cam1", "cam2", "cam3"]
+    assert centre_errors(rig, rig_cameras).max() < 1e-3
+    out = run_cli("observe-grid", *flags, "--camera", cameras[0][1], "--camera", "-", "-")
+    assert out.returncode == 2 and "as many photos" in out.stderr, out.stderr
 
 
 def test_a_grid_with_a_missing_border_row_is_flagged():
