@@ -28,7 +28,7 @@ from . import _label
 from ._camera import Camera
 from ._detect import Detection
 from ._label import Labels, _size_ratios
-from .targets import Target, _grid_symmetries
+from .targets import Target, _grid_symmetries, _marker_ids
 
 __all__ = ["label_grid", "match_dots"]
 
@@ -450,9 +450,7 @@ def label_grid(
     """
     blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
     M, B = rows * cols, len(blobs)
-    markers = np.unique(np.asarray(markers, dtype=int).reshape(-1))
-    if len(markers) and (markers.min() < 0 or markers.max() >= M):
-        raise ValueError(f"`markers` are dot ids, 0 to {M - 1}; got {markers.tolist()}.")
+    markers = _marker_ids(markers, M)
     moves = _grid_symmetries(rows, cols)
     if B < 6:
         return Labels.failed(M, B, f"only {B} blobs found")

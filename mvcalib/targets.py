@@ -187,11 +187,9 @@ def dot_grid(
     points = np.c_[x, y, np.zeros_like(x)].astype(float)
     name = f"{'asymmetric ' if asymmetric else ''}dot grid {rows} x {cols}"
     grid = _printed(name, points, spacing, dot_radius, units)
-    markers = np.unique(np.asarray(markers, dtype=int).reshape(-1))
+    markers = _marker_ids(markers, rows * cols)
     if not len(markers):
         return grid
-    if markers.min() < 0 or markers.max() >= rows * cols:
-        raise ValueError(f"`markers` are dot ids, 0 to {rows * cols - 1}; got {markers.tolist()}.")
     if not asymmetric and any(
         np.array_equal(np.sort(move[markers]), markers) for move in _grid_symmetries(rows, cols)[1:]
     ):
@@ -202,6 +200,14 @@ def dot_grid(
         )
     radius = np.where(np.isin(np.arange(rows * cols), markers), marker_scale, 1.0) * grid.radii
     return dataclasses.replace(grid, dot_radius=radius, fiducials=markers)
+
+
+def _marker_ids(markers, M: int) -> np.ndarray:
+    """A grid's `markers` as sorted distinct dot ids; ValueError for one outside `0 .. M-1`."""
+    markers = np.unique(np.asarray(markers, dtype=int).reshape(-1))
+    if len(markers) and (markers.min() < 0 or markers.max() >= M):
+        raise ValueError(f"`markers` are dot ids, 0 to {M - 1}; got {markers.tolist()}.")
+    return markers
 
 
 def _grid_symmetries(rows: int, cols: int) -> list[np.ndarray]:
