@@ -23,7 +23,7 @@ from ._second_look import _gate, _rms
 from ._second_look import second_look as _second_look
 from ._status import Status
 from ._triangulate import triangulate
-from .targets import Target, box_corner
+from .targets import Target, _layout, box_corner
 
 __all__ = ["ImageCalibration", "calibrate_images", "read_image"]
 
@@ -435,8 +435,10 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
 
     - `photos`: per camera, its photos in frame order (paths or images; None where it took
       none): `photos[c][f]`, every camera with as many frames.
-    - `grid`: a rectangular grid of dots (`mvcalib.targets.dot_grid`), its markers as its
-      `fiducials`; without them only one camera's views are labelled consistently.
+    - `grid`: a grid of dots made by `mvcalib.targets.dot_grid`, its markers as its
+      `fiducials`. Without them a symmetric grid's ids agree within one camera's views only;
+      an asymmetric grid with an odd number of rows needs none while every camera sees the
+      board from the same side.
     - `names`: the cameras' names; default `cam0`, `cam1`, ...
     - `detect`: options of `detect_dots` (e.g. `dark_dots=False`).
     - `progress`: a line on stderr per photo flagged or unreadable (default: with more than 20
@@ -464,10 +466,7 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     from .io import Observations
 
     points = np.asarray(grid.points, float)
-    xs, ys = (np.unique(np.round(points[:, k], 9)) for k in (0, 1))
-    rows, cols = len(ys), len(xs)
-    if rows * cols != len(points) or np.any(points[:, 2] != 0):
-        raise ValueError(f"{grid.name!r} is not a rectangular grid of dots (targets.dot_grid).")
+    rows, cols, asymmetric = _layout(grid)
     photos = [list(camera) for camera in photos]
     C, F = len(photos), max((len(camera) for camera in photos), default=0)
     if C == 0 or F == 0 or any(len(camera) != F for camera in photos):
@@ -487,7 +486,7 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
         try:
             image = read_image(photo) if isinstance(photo, (str, os.PathLike)) else photo
             labels = label_grid(detect_dots(image, **(detect or {})), rows, cols,
-                                markers=grid.fiducials)  # fmt: skip
+                                asymmetric=asymmetric, markers=grid.fiducials)  # fmt: skip
         except ValueError as error:
             labels = Labels.failed(len(points), 0, str(error))
         if labels.ok:

@@ -28,7 +28,7 @@ from . import _label
 from ._camera import Camera
 from ._detect import Detection
 from ._label import Labels, _size_ratios
-from .targets import Target, _grid_symmetries, _marker_ids
+from .targets import Target, _grid_lattice, _marker_ids, _placements
 
 __all__ = ["label_grid", "match_dots"]
 
@@ -397,6 +397,12 @@ def _local_predictions(H, nodes, known, pixels):
     return out
 
 
+def _extent(keys: np.ndarray) -> str:
+    """The box around lattice `keys (n, 2)`, e.g. `'8 x 12'`."""
+    width, height = keys.max(0) - keys.min(0) + 1
+    return f"{width} x {height}"
+
+
 def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     h = points @ H[:, :2].T + H[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -408,6 +414,7 @@ def label_grid(
     rows: int,
     cols: int,
     *,
+    asymmetric: bool = False,
     markers=(),
     min_ratio: float = 1.3,
     max_rounds: int = 30,
@@ -422,17 +429,22 @@ def label_grid(
     through a wide-angle or fisheye lens is a homography only locally; mutually nearest within
     0.4 of the local spacing, then a few times the fit's RMS but no less than a fifth of the
     spacing; ambiguous ones dropped) grow it ring by ring until nothing changes. The lattice found
-    must be exactly `rows x cols` (or `cols x rows`) dots wide and hold three quarters of them,
-    else the view is flagged: with a whole row or column missing at the border the grid's
-    position is unknown. A symmetric grid is then
-    labelled up to its half turn: ids start at the corner nearest the image's top left, which
-    keeps a planar calibration (the board's pose absorbs the turn) but not the ids' identity
-    across cameras. With `markers` (the ids of dots printed larger, `targets.dot_grid(...,
-    markers=)`, a grid's `fiducials`) the labelling is the one move of the grid onto itself (a
-    turn, or a mirroring: the board seen from its other side) that puts them on blobs larger
-    than their neighbours (major axis over `min_ratio` times theirs, as `mvcalib.label_dots`
-    finds fiducials), and small ones elsewhere: all of the markers found, or all but one, and
-    every other move off by two blobs or more; else the view is flagged.
+    must lie on the grid's dots in one place only, up to the grid's own turns and mirrorings (a
+    lattice that also fits one row or column over has lost a border row or column, and the
+    grid's position is unknown) and hold three quarters of them; else the view is flagged.
+
+    Of the placements the grid's symmetries leave, a rectangular grid is labelled as a camera on
+    the board's +z side sees it, dot 0 nearest the image's top left: up to its half turn (a
+    square one up to its quarter turns), which keeps a planar calibration (the board's pose
+    absorbs the turn) but not the ids' identity across cameras. `asymmetric=True` is OpenCV's
+    asymmetric circles grid (`targets.dot_grid(..., asymmetric=True)`), which no turn maps onto
+    itself when its rows are odd in number: its ids are the same from every camera on one side
+    of the board. With `markers` (the ids of dots printed larger, `targets.dot_grid(...,
+    markers=)`, a grid's `fiducials`) the labelling is the placement (a turn, or a mirroring: the
+    board seen from its other side) that puts them on blobs larger than their neighbours (major
+    axis over `min_ratio` times theirs, as `mvcalib.label_dots` finds fiducials), and small ones
+    elsewhere: all of the markers found, or all but one, and every other placement off by two
+    blobs or more; else the view is flagged.
 
     **Example:**
 
@@ -451,7 +463,7 @@ def label_grid(
     blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
     M, B = rows * cols, len(blobs)
     markers = _marker_ids(markers, M)
-    moves = _grid_symmetries(rows, cols)
+    grid = _grid_lattice(rows, cols, asymmetric)
     if B < 6:
         return Labels.failed(M, B, f"only {B} blobs found")
     d = np.linalg.norm(blobs[:, None] - blobs[None], axis=-1)
@@ -476,6 +488,8 @@ def label_grid(
             [(i, j) for i in range(-span, span + 1) for j in range(-span, span + 1)], float
         )
         known = np.array(list(lattice), float).reshape(-1, 2)
+        if len(known):  # a step from the lattice so far, not far out where only clutter lies
+            ij = ij[np.abs(ij[:, None] - known[None]).max(-1).min(-1) <= 1]
         predicted = _local_predictions(H, ij, known, blobs[list(lattice.values())])
         gate = min(gate, _FIRST_GATE * _spacing(predicted))
         new = _mutual(predicted, blobs, gate)
@@ -498,62 +512,59 @@ def label_grid(
         span = span + 1 if not grown else span
     else:
         return Labels.failed(M, B, f"the lattice did not settle in {max_rounds} rounds")
-    # At a steep angle the shortest displacements may be a diagonal of the grid: a lattice basis
-    # all the same, but sheared. Shear it back while that shrinks the box around the dots.
+    # Where the lattice lies on the grid: its keys count steps along the two shortest
+    # displacements near the seed, which may be any short vectors of the grid's lattice (a
+    # diagonal at a steep angle). It must lie on the grid's dots in one place, up to the grid's
+    # own symmetries: else a border row or column is missing. A key or two a step off the grid
+    # are blobs beside it that joined the lattice (clutter), dropped if every other placement
+    # leaves two more off.
     keys = np.array(list(lattice))
-    shears = [
-        np.array(m)
-        for m in ([[1, 1], [0, 1]], [[1, -1], [0, 1]], [[1, 0], [1, 1]], [[1, 0], [-1, 1]])
-    ]
-    area = lambda k: np.prod(k.max(0) - k.min(0) + 1)  # noqa: E731
-    for _ in range(max(rows, cols)):
-        best = min(shears, key=lambda m: area(keys @ m.T))
-        if area(keys @ best.T) >= area(keys):
-            break
-        keys = keys @ best.T
-    lattice = dict(zip(map(tuple, keys), lattice.values()))
-    lo, hi = keys.min(0), keys.max(0)
-    extent = tuple(hi - lo + 1)
-    if extent not in ((cols, rows), (rows, cols)):
+    symmetries = len(_placements(grid, grid)[0])
+    spare = max(1, len(keys) // 30)  # (keys that may be dropped as clutter)
+    placements, det, off = _placements(keys, grid, slack=spare + 1)
+    fewest = off.min(initial=spare + 1)
+    rivals = np.sum(off <= fewest + (fewest > 0))  # (with keys dropped, two more for the others)
+    if fewest > spare:
         return Labels.failed(
-            M, B, f"the lattice found is {extent[0]} x {extent[1]} dots, not {rows} x {cols}: "
-            + ("a border row or column is missing, so the grid's position is unknown"
-               if extent[0] * extent[1] < M else "blobs beside the grid joined it"),
+            M, B, f"the lattice found is {_extent(keys)} dots and fits nowhere on the grid: "
+            "blobs beside the grid joined it",
         )  # fmt: skip
-    if len(lattice) < _MIN_COVERAGE * M:
+    if rivals != symmetries:
         return Labels.failed(
-            M, B, f"only {len(lattice)} of the grid's {M} dots form its lattice: too few to trust "
+            M, B, f"the lattice found is {_extent(grid[placements[0][placements[0] >= 0]])} "
+            f"dots, which fit {rivals // symmetries} places on the grid: a border row or column "
+            "is missing, so the grid's position is unknown",
+        )  # fmt: skip
+    placements, det = placements[off == fewest], det[off == fewest]
+    on = placements[0] >= 0  # (the same keys are on the grid under each of the grid's symmetries)
+    keys, placements = keys[on], placements[:, on]
+    members = np.array(list(lattice.values()))[on]
+    pixels = blobs[members]
+    if len(keys) < _MIN_COVERAGE * M:
+        return Labels.failed(
+            M, B, f"only {len(keys)} of the grid's {M} dots form its lattice: too few to trust "
             "where its rows and columns fall",
         )  # fmt: skip
-    # (i, j) -> (row, col): the lattice's longer side along the grid's longer side
-    i, j = (keys - lo).T
-    row, col = (j, i) if extent == (cols, rows) else (i, j)
-    ids = row * cols + col
-    if extent != (cols, rows):  # (a transposed lattice: mirror it back to the board's side)
-        ids = row * cols + (cols - 1 - col)
-    # of the grid's two half-turn labellings, the one with dot 0 nearest the image's top left
-    members = np.array(list(lattice.values()))
-    pixels = blobs[members]
-    turned = M - 1 - ids
-    if np.sum(pixels[np.argmin(turned)]) < np.sum(pixels[np.argmin(ids)]):
-        ids = turned
-    if len(markers):  # the move that puts the markers on the large blobs, and them only
+    if len(markers):  # the placement that puts the markers on the large blobs, and them only
         large = _size_ratios(np.asarray(detection.major, float).reshape(-1), d)[members] > min_ratio
-        claimed = [np.isin(move[ids], markers) for move in moves]
-        misfits = np.array([np.sum(large != marker) for marker in claimed])
+        misfits = np.array([np.sum(large != np.isin(ids, markers)) for ids in placements])
         best = int(np.argmin(misfits))
-        found = int(np.sum(large & claimed[best]))
-        if found < max(1, len(markers) - 1) or np.sort(misfits)[1] < misfits[best] + 2:
+        found = int(np.sum(large & np.isin(placements[best], markers)))
+        rival = np.sort(misfits)[1] if len(misfits) > 1 else np.inf
+        if found < max(1, len(markers) - 1) or rival < misfits[best] + 2:
             return Labels.failed(
                 M, B, f"the markers do not tell the grid's orientation: {found} of "
                 f"{len(markers)} found as large blobs, and the grid's turns and mirrorings "
                 f"misplace {np.sort(misfits).tolist()} large or small blobs",
             )  # fmt: skip
-        ids = moves[best][ids]
+    else:  # as a camera on the board's +z side sees it, dot 0 nearest the image's top left
+        seen = np.flatnonzero(det > 0)
+        best = seen[np.argmin([np.sum(pixels[np.argmin(placements[k])]) for k in seen])]
+    ids = placements[best]
     index = np.full(M, -1)
-    index[ids] = list(lattice.values())
-    P = _homography(np.c_[ids % cols, ids // cols].astype(float), pixels)  # grid units -> pixels
-    residual = _apply(P, np.c_[ids % cols, ids // cols].astype(float)) - pixels
+    index[ids] = members
+    P = _homography(grid[ids].astype(float), pixels)  # grid steps -> pixels
+    residual = _apply(P, grid[ids].astype(float)) - pixels
     rms = float(np.sqrt(np.mean(np.sum(residual**2, -1))))
     return Labels.matched(
         blobs, index, rms, f"{len(ids)} of {M} grid dots labelled, homography fit {rms:.2f} px"

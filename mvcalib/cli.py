@@ -352,6 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--marker-scale", type=float, default=1.6, help="markers' size over the others' (1.6)"
     )
     grid.add_argument(
+        "--asymmetric", action="store_true",
+        help="OpenCV's asymmetric circles grid: every other row shifted by half a spacing, rows "
+        "half a spacing apart (with an odd number of rows its ids need no markers)",
+    )  # fmt: skip
+    grid.add_argument(
         "--camera", nargs="+", action="append", required=True, metavar="IMG",
         help="one camera's photos in frame order ('-' where it took none); once per camera",
     )  # fmt: skip
@@ -1135,8 +1140,8 @@ def _observe_grid(args) -> int:
     from ._images import observe_grid
 
     rows, cols, spacing = args.grid
-    grid = targets.dot_grid(int(rows), int(cols), spacing, markers=args.markers,
-                            marker_scale=args.marker_scale)  # fmt: skip
+    grid = targets.dot_grid(int(rows), int(cols), spacing, asymmetric=args.asymmetric,
+                            markers=args.markers, marker_scale=args.marker_scale)  # fmt: skip
     photos = [[None if p == "-" else p for p in camera] for camera in args.camera]
     names = [f"cam{c}" for c in range(len(photos))]
     say = _progress(args)

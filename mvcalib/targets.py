@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -190,9 +191,9 @@ def dot_grid(
     markers = _marker_ids(markers, rows * cols)
     if not len(markers):
         return grid
-    if not asymmetric and any(
-        np.array_equal(np.sort(move[markers]), markers) for move in _grid_symmetries(rows, cols)[1:]
-    ):
+    moves = _placements(*[_grid_lattice(rows, cols, asymmetric)] * 2)[0]
+    moved = [np.sort(move[markers]) for move in moves if np.any(move != np.arange(len(move)))]
+    if any(np.array_equal(ids, markers) for ids in moved):
         raise ValueError(
             f"the markers {markers.tolist()} look the same after a turn or a mirroring of the "
             "grid, so they cannot tell its orientation: e.g. four dots in an L with unequal "
@@ -210,17 +211,71 @@ def _marker_ids(markers, M: int) -> np.ndarray:
     return markers
 
 
-def _grid_symmetries(rows: int, cols: int) -> list[np.ndarray]:
-    """The moves that map a `rows x cols` grid onto itself, each as the dot ids `(M,)` that the
-    dots move to (ids row by row), the identity first: the turns in its plane (the half turn;
-    for a square grid the quarter turns too), and each of them after a mirroring (the board seen
-    from its other side)."""
+def _grid_lattice(rows: int, cols: int, asymmetric: bool = False) -> np.ndarray:
+    """A dot grid's dots (ids row by row) as integer coordinates `(M, 2)` in a basis of its
+    shortest displacements, turning as the board's x towards its y: `(col, row)`; for an
+    asymmetric grid, whose nearest neighbours are diagonal, `(u, v)` with `x = (u - v) s / 2`
+    and `y = (u + v) s / 2` for spacing `s`."""
     r, c = np.divmod(np.arange(rows * cols), cols)
-    turns = [r * cols + c, (rows - 1 - r) * cols + (cols - 1 - c)]
-    if rows == cols:
-        turns += [c * cols + (rows - 1 - r), (cols - 1 - c) * cols + r]
-    mirrored = r * cols + (cols - 1 - c)
-    return turns + [turn[mirrored] for turn in turns]
+    if not asymmetric:
+        return np.c_[c, r]
+    x = 2 * c + r % 2  # (in half spacings)
+    return np.c_[(r + x) // 2, (r - x) // 2]
+
+
+# The integer 2 x 2 maps of determinant +-1 with entries up to 3: those that take one basis of a
+# lattice to another (of vectors short enough to be a grid's nearest neighbours in a photo).
+_UNIMODULAR = np.array(
+    [u for u in itertools.product(range(-3, 4), repeat=4) if abs(u[0] * u[3] - u[1] * u[2]) == 1]
+).reshape(-1, 2, 2)
+
+
+def _placements(keys: np.ndarray, lattice: np.ndarray, slack: int = 0):
+    """Every way the integer points `keys (n, 2)` lie on a grid's `lattice (M, 2)`
+    (`_grid_lattice`), all but at most `slack` of them: a map of `_UNIMODULAR`, then a shift,
+    that takes them onto distinct dots (those left over a step outside the grid at most).
+
+    **Returns:** under each placement, the dot id of every key, -1 where it is off the grid,
+    `(P, n)`; each placement's determinant `(P,)` (+1 keeps the keys' handedness: the board seen
+    from the side they assume; -1 mirrors it); and how many keys each leaves off the grid `(P,)`.
+    `_placements(lattice, lattice)[0]` are the grid's symmetries.
+    """
+    keys, lattice = np.asarray(keys, int).reshape(-1, 2), np.asarray(lattice, int)
+    pad = int(slack > 0)  # (keys a step beyond the grid, off it)
+    lo, size = lattice.min(0) - pad, lattice.max(0) - lattice.min(0) + 1 + 2 * pad
+    where = np.full(size, -1)
+    where[tuple((lattice - lo).T)] = np.arange(len(lattice))
+    ids, dets = [], []
+    for U in _UNIMODULAR:
+        moved = keys @ U.T
+        free = size - (moved.max(0) - moved.min(0) + 1)  # how far the keys' box can shift
+        if np.any(free < 0):
+            continue
+        shifts = np.stack(np.meshgrid(*map(np.arange, free + 1), indexing="ij"), -1)
+        at = (moved - moved.min(0)) + shifts.reshape(-1, 1, 2)  # (shifts, n, 2)
+        ids.append(where[at[..., 0], at[..., 1]])
+        dets += [round(np.linalg.det(U))] * len(at)
+    ids = np.concatenate(ids) if ids else np.zeros((0, len(keys)), int)
+    off = np.sum(ids < 0, axis=-1)
+    keep = off <= slack
+    return ids[keep], np.array(dets, int).reshape(-1)[keep], off[keep]
+
+
+def _layout(target: Target) -> tuple[int, int, bool]:
+    """`(rows, cols, asymmetric)` of a grid made by `dot_grid` (ids row by row); ValueError for
+    any other target."""
+    points = np.asarray(target.points, float)
+    ys = np.unique(np.round(points[:, 1] - points[0, 1], 9))
+    rows = len(ys)
+    cols = len(points) // max(rows, 1)
+    for asymmetric in (False, True):
+        if rows < 2 or cols < 2 or rows * cols != len(points):
+            break
+        spacing = (ys[1] - ys[0]) * (2.0 if asymmetric else 1.0)
+        grid = dot_grid(rows, cols, spacing, asymmetric=asymmetric).points + points[0]
+        if np.allclose(points, grid, rtol=0.0, atol=1e-9 * spacing * (rows + cols)):
+            return rows, cols, asymmetric
+    raise ValueError(f"{target.name!r} is not a grid of dots (`mvcalib.targets.dot_grid`).")
 
 
 def plate(

@@ -81,6 +81,38 @@ def test_a_grid_s_markers_are_larger_dots_that_break_its_symmetry():
         mc.targets.dot_grid(4, 5, 10.0, markers=(20,))
 
 
+def test_a_grid_s_symmetries_and_layout_are_found_from_its_dots():
+    """The moves of a grid onto itself, found by one search (`targets._placements`) for any
+    layout: a rectangle's half turn and two mirrorings, a square's eight, and OpenCV's
+    asymmetric circles grid's one: its mirroring across the rows when they are odd in number
+    (no turn: its ids need no markers), its half turn when they are even."""
+    from mvcalib.targets import _grid_lattice, _layout, _placements
+
+    def moves(rows, cols, asymmetric=False):
+        ids, det, _ = _placements(*[_grid_lattice(rows, cols, asymmetric)] * 2)
+        return {tuple(move) for move in ids}, sorted(det.tolist())
+
+    rectangle, det = moves(3, 4)
+    assert det == [-1, -1, 1, 1] and tuple(range(12))[::-1] in rectangle  # (the half turn)
+    assert len(moves(4, 4)[0]) == 8
+    odd, det = moves(5, 3, asymmetric=True)
+    assert det == [-1, 1] and tuple(np.arange(15).reshape(5, 3)[::-1].ravel()) in odd
+    even, det = moves(4, 3, asymmetric=True)
+    assert det == [1, 1] and tuple(range(12))[::-1] in even
+    with pytest.raises(ValueError, match="look the same after a turn or a mirroring"):
+        mc.targets.dot_grid(4, 3, 10.0, asymmetric=True, markers=(0, 11))
+    # a grid with a border row lost fits one row over too; a stray dot beside it only slack
+    keys = _grid_lattice(5, 3, asymmetric=True)
+    assert len(_placements(keys[3:], keys[:, :])[0]) == 4
+    ids, _, off = _placements(np.r_[keys, [[-1, -1]]], keys, slack=1)
+    assert off.min() == 1 and np.sum(off == 1) == 2 and set(ids[off == 1][:, -1]) == {-1}
+    for rows, cols, asymmetric in [(3, 4, False), (5, 3, True), (4, 4, True)]:
+        grid = mc.targets.dot_grid(rows, cols, 0.05, asymmetric=asymmetric, units="m")
+        assert _layout(grid) == (rows, cols, asymmetric)
+    with pytest.raises(ValueError, match="not a grid of dots"):
+        _layout(mc.targets.plate(3, 4, 6.0))
+
+
 def test_openptv_clicks_are_read_and_bad_ones_refused(tmp_path):
     par, dat = tmp_path / "man_ori.par", tmp_path / "man_ori.dat"
     par.write_text("2\n3\n71\n73\n1\n3\n69\n73\n")
