@@ -217,8 +217,8 @@ def _average_pose(R, t, w):
 
 
 def _pair_poses_planar(plane, xy, pixels, mask, K, rcond):
-    """Each (camera, frame) pair's target pose from its homography, and each camera's K (from its
-    own frames, `_focal_lengths`, unless given)."""
+    """Each (camera, frame) pair's target pose from its homography and its status, and each
+    camera's K (from its own frames, `_focal_lengths`, unless given)."""
     homography = jax.vmap(
         jax.vmap(functools.partial(_homography_kernel, rcond=rcond), (None, 0, 0)), (None, 0, 0)
     )
@@ -232,7 +232,7 @@ def _pair_poses_planar(plane, xy, pixels, mask, K, rcond):
         K, found = jax.vmap(_focal_lengths)(H, ok, pixels, mask & ok[..., None])
         determined = found & (jnp.sum(ok, 1) >= 2)
     R, t = _planar_poses(plane, xy, K, H, mask)
-    return K, determined, R, t, ok, H
+    return K, determined, R, t, status, H
 
 
 def _planar_poses(plane, xy, K, H, mask):
@@ -244,8 +244,8 @@ def _planar_poses(plane, xy, K, H, mask):
 
 
 def _pair_poses_object(target, pixels, mask, K, rcond):
-    """Each (camera, frame) pair's camera from the DLT; each camera's K the median over its
-    frames unless given."""
+    """Each (camera, frame) pair's camera from the DLT and its status; each camera's K the
+    median over its frames unless given."""
     C, F = mask.shape[:2]
     N = target.shape[0]
     P, status, _, _ = _dlt.solve_validated(
@@ -256,7 +256,8 @@ def _pair_poses_object(target, pixels, mask, K, rcond):
         _dlt.DEFAULT_MAX_RELATIVE_RMS,
     )
     cams = Camera.from_projection(P.reshape(C, F, 3, 4), skew=False)
-    ok = (status == Status.OK).reshape(C, F)
+    status = status.reshape(C, F)
+    ok = status == Status.OK
     determined = jnp.any(ok, 1)
     if K is None:
         med = lambda x: _dlt._masked_median(x, ok, sort=True)  # noqa: E731, SLF001
@@ -270,7 +271,7 @@ def _pair_poses_object(target, pixels, mask, K, rcond):
             ],
             -2,
         )
-    return K, determined, cams.R, cams.t, ok
+    return K, determined, cams.R, cams.t, status
 
 
 def _relative_poses(R, t, ok):
@@ -349,9 +350,12 @@ def _initialise(
     K = cameras.K if given else None
     if planar:
         xy = plane.apply(target)[:, :2]
-        K, determined, Rp, tp, ok, H = _pair_poses_planar(plane, xy, pixels, closed, K, rcond)
+        K, determined, Rp, tp, pair_status, H = _pair_poses_planar(
+            plane, xy, pixels, closed, K, rcond
+        )
     else:
-        K, determined, Rp, tp, ok = _pair_poses_object(target, pixels, closed, K, rcond)
+        K, determined, Rp, tp, pair_status = _pair_poses_object(target, pixels, closed, K, rcond)
+    ok = pair_status == Status.OK
     # (a pose that passed its own checks may still not be finite: with exact pixels and all but
     # one visible point of a 3-D target on one face, the DLT's null space is two-dimensional and
     # a rank-one P can come out, which does not decompose)
@@ -434,12 +438,15 @@ def _initialise(
     frame_ok = jnp.any(pair, 0)
     Rf = jnp.where(frame_ok[:, None, None], Rf, eye)
     tf = jnp.where(frame_ok[:, None], tf, 0.0)
-    if loss is not None:
-        # A robust loss also takes the pairs whose own closed form failed, in the frames that
-        # other pairs posed: one wrong detection among a 3-D target's points fails the pair's DLT
-        # (its fit check), and with 1 % of the detections moved by 50 px a third of an 8 x 100
-        # object rig's pairs were left out so (until 2026-12-05)
-        pair = pair | (jnp.any(mask, -1) & usable[:, None] & frame_ok[None, :])
+    # The pairs whose own closed form failed take part in the joint solve where other pairs
+    # posed their frame: those whose points determine no pose of their own (a board seen along
+    # one row and one more corner: `_planar._general_position`; caliscope's recording has five,
+    # each in a frame three other cameras saw), and, with a robust loss, any: one wrong
+    # detection among a 3-D target's points fails the pair's DLT (its fit check), and with 1 %
+    # of the detections moved by 50 px a third of an 8 x 100 object rig's pairs were left out
+    # so (until 2026-12-05)
+    failed = pair_status == Status.DEGENERATE if loss is None else jnp.any(mask, -1)
+    pair = pair | (failed & usable[:, None] & frame_ok[None, :])
     initial = eqx.tree_at(lambda c: (c.R, c.t), own, (R, t))
     return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance
 
