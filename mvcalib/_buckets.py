@@ -14,10 +14,13 @@ Padding changes nothing that is returned. A padded point is hidden (`mask` False
 `world` and `pixels`), and hidden points have no influence at all. A padded camera is a copy of
 the last camera, whose answer does not depend on the others in its batch (inverse iteration
 goes on while any camera does, the others keeping their vectors); refinement sees it as a
-camera without a seed, whose problem ends at once. The padding is done on the host in NumPy (on
-a CPU that is the arrays' own memory), so that a new shape compiles nothing but the bucket's
-program. Inside the user's traced code, shapes are theirs: padding would only add work to
-the program they compile anyway.
+camera without a seed, whose problem ends at once. `calibrate_rig` pads its frames, in coarser
+buckets (a recording's length changes with every recording), with frames nobody saw, which its
+solves hold still: they round differently, so its answer is the same to the solves' tolerance
+(steps of 1e-5 standard errors), not to the last digit. The padding is done on the host in
+NumPy (on a CPU that is the arrays' own memory), so that a new shape compiles nothing but the
+bucket's program. Inside the user's traced code, shapes are theirs: padding would only add work
+to the program they compile anyway.
 
 Programs are compiled by `jit` (in a build that compiles quickly when small) and, where a call
 runs several one after the other, on other threads at the same time (`ahead`).
@@ -40,11 +43,12 @@ WORK = 64 * 64
 MIN_CAMERAS = 64
 
 
-def size(n: int, minimum: int = 1) -> int:
-    """The bucket of a length: the least `k 2^e >= max(n, minimum)` with `16 <= k < 32` (lengths
-    up to 32 are their own bucket)."""
+def size(n: int, minimum: int = 1, *, bits: int = 5) -> int:
+    """The bucket of a length: the least `k 2^e >= max(n, minimum)` with `2^(bits-1) <= k <
+    2^bits` (lengths up to `2^bits` are their own bucket): by default sixteen sizes per
+    doubling, at most 6.25 % more work; `bits=2`, two (48, 64, 96, ...), at most 50 %."""
     n = max(int(n), int(minimum), 1)
-    step = 1 << max((n - 1).bit_length() - 5, 0)
+    step = 1 << max((n - 1).bit_length() - bits, 0)
     return -(-n // step) * step
 
 
