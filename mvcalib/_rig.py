@@ -755,7 +755,9 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
     focal length its own frames leave free, 106 against 187 px, from where the joint solve
     started at cameras 1 and 2 did not recover in float64: that stage keeps the fixed rule.)
     Converged when an accepted step is shorter than `rtol` standard errors, or a trial changed
-    the cost by its rounding only.
+    the cost by its rounding only: that trial is taken, nearer the zero gradient the step aimed
+    at (the 5 views of tests/test_planar.py: v0 within 4e-11 of OpenCV's, against 3e-9 for the
+    point it left, their RMS equal to 1e-15 either way).
 
     The normal equations are built in one place, the step: its first evaluates them at the seed
     (a step of zero, always accepted), so that the compiled program holds one copy of their
@@ -797,7 +799,10 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
         trial = {"cams": y["cams"] + dc, "frames": y["frames"] + df}
         new = options["normal"](trial, args)
         cost_new = jnp.where(jnp.isnan(new.cost), jnp.inf, new.cost)
-        accept = fresh | (cost_new < n.cost)
+        # a trial whose cost differs by its rounding only is the minimum's as much as the point
+        # it left, and nearer its zero gradient, which the step aimed at: taken, and the last
+        level = jnp.abs(cost_new - n.cost) <= 64 * jnp.finfo(n.cost.dtype).eps * n.cost
+        accept = fresh | (cost_new < n.cost) | level
         quadratic = _quadratic(n, dc, df)
         predicted = -2.0 * (jnp.sum(dc * n.gc) + jnp.sum(df * n.gf)) - quadratic
         actual = n.cost - cost_new
@@ -809,11 +814,10 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
         dof = jnp.maximum(options["n_residuals"] - options["n_parameters"], 1)
         tolerance = self.rtol**2 * jnp.minimum(cost_new, n.cost) / dof
         short = (quadratic <= tolerance) | (jnp.maximum(self.norm(dc), self.norm(df)) <= self.atol)
-        exact = ~accept & (jnp.abs(cost_new - n.cost) <= 64 * jnp.finfo(n.cost.dtype).eps * n.cost)
         stalled = ~accept & (jnp.maximum(predicted, jnp.abs(actual)) <= tolerance)
         # (or the residuals are down to the rounding of the pixels' coordinates: a noise-free rig)
         rounding = jnp.minimum(cost_new, n.cost) <= options["rounding"]
-        done = ~fresh & ((accept & short) | exact | stalled | rounding)
+        done = ~fresh & ((accept & short) | level | stalled | rounding)
         damping = jnp.where(
             accept,
             jnp.where(fresh, state.damping, jnp.maximum(factor * state.damping, _MIN_DAMPING)),
