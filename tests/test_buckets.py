@@ -244,3 +244,33 @@ def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     assert np.all(off < 1e-5 * np.linalg.norm(np.asarray(alone.position_std), axis=-1)[1:])
     np.testing.assert_allclose(full.rms, alone.rms, rtol=1e-9)
     np.testing.assert_array_equal(np.isnan(full.frame_rms), np.isnan(alone.frame_rms))
+
+
+def test_photos_of_other_numbers_reuse_the_planar_programs(caplog):
+    """`calibrate_planar` pads a concrete call's views up to a bucket (16, 24, 32, 48, ...) with
+    views nobody saw: 17 and 20 views compile each of its programs once; the answer is the
+    unpadded one's to the solve's tolerance, the same statuses."""
+    import mvcalib._planar
+
+    rig = mc.synthetic.board_rig(jax.random.key(3), n_cameras=1, n_frames=60, noise=0.3)
+    seen = np.flatnonzero(np.asarray(rig.mask)[0].sum(-1) >= 20)[:20]
+    target, pixels, mask = (
+        rig.target,
+        np.asarray(rig.pixels)[0, seen],
+        np.asarray(rig.mask)[0, seen],
+    )
+    jax.clear_caches()
+    with caplog.at_level(logging.DEBUG), jax.log_compiles():
+        short = mc.calibrate_planar(target, pixels[:17], mask[:17])
+        full = mc.calibrate_planar(target, pixels, mask)
+    for name in ("_closed_form", "_refine_views", "_finish"):
+        assert len(_compiled_on(caplog, name)) == 1, name
+    assert short.status.shape == (17,) and short.camera.R.shape == (17, 3, 3)
+    assert (
+        full.report.residuals.shape == (20, mask.shape[1], 2) and full.homographies.shape[0] == 20
+    )
+    with mock.patch.object(mvcalib._planar, "VIEW_BITS", 30):  # (no padding)
+        alone = mc.calibrate_planar(target, pixels, mask)
+    np.testing.assert_array_equal(full.status, alone.status)
+    np.testing.assert_allclose(full.K, alone.K, rtol=1e-9)
+    np.testing.assert_allclose(full.rms, alone.rms, rtol=1e-12)
