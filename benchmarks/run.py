@@ -4,13 +4,14 @@ Runs, each with its own `--quick` (or `--smoke`) and in this order: `bound.py` (
 FLOP/s and bandwidth), `dlt.py` (DLT + decomposition against NumPy and OpenCV), `refine.py`
 (against SciPy least_squares), `triangulate.py` (against NumPy and OpenCV), `detect.py` (against
 OpenCV's blob detector), `fisheye.py` (the fisheye lens against `cv2.fisheye`: projection,
-unprojection, planar calibration, pose refinement), `startup.py` (compile times, the demo's cold
-start) and `first_call.py` (fresh processes to the first answer against OpenCV's loop, the
-break-even), then prints one table of every path of the headline settings: time per camera /
-point / image, the peers' time over mvcalib's, accuracy at the same settings, compile time, peak
-memory and the distance from the physical bound. Every number comes from this run; each script
-also writes its own JSON to `benchmarks/results/`, the suite adds `summary.json` and
-`summary.png`.
+unprojection, planar calibration, pose refinement), `planar.py` (Zhang's planar calibration of
+one pinhole camera against `cv2.calibrateCamera`, 10-80 views), `startup.py` (compile times,
+the demo's cold start) and `first_call.py` (fresh processes to the first answer against
+OpenCV's loop, the break-even), then prints one table of every path of the headline settings:
+time per camera / point / image, the peers' time over mvcalib's, accuracy at the same
+settings, compile time, peak memory and the distance from the physical bound. Every number
+comes from this run; each script also writes its own JSON to `benchmarks/results/`, the suite
+adds `summary.json` and `summary.png`.
 
 Run from the repository root:
 
@@ -35,7 +36,17 @@ import time
 import traceback
 from pathlib import Path
 
-PARTS = ("bound", "dlt", "refine", "triangulate", "detect", "fisheye", "startup", "first_call")
+PARTS = (
+    "bound",
+    "dlt",
+    "refine",
+    "triangulate",
+    "detect",
+    "fisheye",
+    "planar",
+    "startup",
+    "first_call",
+)
 SMOKE_PARTS = ("bound", "dlt", "triangulate")
 
 
@@ -253,7 +264,7 @@ def plot(payloads, path):
         left.legend(fontsize=8)
         left.grid(True, which="both", alpha=0.3)
     labels, ratios = [], []
-    for name in ("dlt", "refine", "triangulate", "detect", "fisheye"):
+    for name in ("dlt", "refine", "triangulate", "detect", "fisheye", "planar"):
         for r in payloads.get(name, {}).get("summary", []):
             if not r["path"].startswith("mvcalib") and r["path"] != "calibrate()":
                 labels.append(f"{r['benchmark']} ({r['setting']}): {r['path']}")
@@ -365,7 +376,7 @@ def main(argv=None) -> int:
 
     rows = [
         r
-        for name in ("dlt", "refine", "triangulate", "detect", "fisheye")
+        for name in ("dlt", "refine", "triangulate", "detect", "fisheye", "planar")
         for r in payloads.get(name, {}).get("summary", [])
     ]
     wall = time.perf_counter() - wall
