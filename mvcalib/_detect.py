@@ -409,6 +409,9 @@ def _disc_window(r, radius, sigma):
     return window, slope
 
 
+_PROFILE_SAMPLES = 1024
+
+
 def _weighted_centroid(grey, labels, region, margin, smooth, dark_dots):
     ring_width = 5
     pad = 2 * margin + ring_width + 2
@@ -464,11 +467,17 @@ def _weighted_centroid(grey, labels, region, margin, smooth, dark_dots):
     to_circle = axes * (radius / semi)  # maps the ellipse onto the disc of that radius
     metric = to_circle @ to_circle.T
 
+    # The blurred disc's profile M(r), tabulated once a blob (SciPy's noncentral chi-square,
+    # 1.75 ms for 3,000 pixels, was most of the detection's time), interpolated linearly:
+    # off by at most 1e-4 of its peak, and a function of r like M, so as centrally symmetric
+    reach_r = float(np.sqrt(np.max(np.einsum("ni,ij,nj->n", xy - start, metric, xy - start))))
+    table_r = np.linspace(0.0, reach_r + 2.0 * (radius + margin) + 1.0, _PROFILE_SAMPLES)
+    table = chndtr((radius / sigma) ** 2, 2, (table_r / sigma) ** 2)
     centre = start
     for _ in range(20):  # Newton's method on sum M(|x - c|) I(x) (x - c) = 0; ~3 steps
         offset = xy - centre
         r = np.sqrt(np.einsum("ni,ij,nj->n", offset, metric, offset))
-        profile = chndtr((radius / sigma) ** 2, 2, (r / sigma) ** 2)  # the blurred disc
+        profile = np.interp(r, table_r, table)  # the blurred disc
         slope, _ = _disc_window(r, radius, sigma)  # -M'(r) / r
         mw = w * profile
         if not mw.sum() > 0:
