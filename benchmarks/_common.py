@@ -82,6 +82,26 @@ def machine_info(*packages: str) -> dict:
     }
 
 
+def opencv_run(doc: str, argv, smoke: str) -> tuple[str, dict]:
+    """A comparison with OpenCV's command line and machine record: the mode (`"full"`, or
+    `"quick"` / `"smoke"` from `argv`; `smoke` says what `--smoke` does) and `machine_info` with
+    OpenCV's version and JAX's compilation cache (a cached first call is no compile)."""
+    import argparse
+
+    import cv2
+    import jax
+
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--quick", action="store_true", help="short timing rounds")
+    group.add_argument("--smoke", action="store_true", help=smoke)
+    args = parser.parse_args(argv)
+    info = machine_info("opencv-python-headless", "optimistix")
+    info["opencv"] = cv2.__version__
+    info["jax_compilation_cache_dir"] = jax.config.jax_compilation_cache_dir
+    return "smoke" if args.smoke else "quick" if args.quick else "full", info
+
+
 def first_and_warm(fn, *, warm_calls: int = 3):
     """(first call's wall time, median of `warm_calls` further calls, first call's output).
 

@@ -66,7 +66,6 @@ Run from the repository root: `python -m benchmarks.fisheye [--quick | --smoke]`
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import jax
@@ -80,8 +79,8 @@ import numpy as np  # noqa: E402
 try:
     from ._common import (
         first_and_warm,
-        machine_info,
         measure,
+        opencv_run,
         results_path,
         tracemalloc_peak_mb,
         write_results,
@@ -90,8 +89,8 @@ try:
 except ImportError:  # run as a script
     from _common import (
         first_and_warm,
-        machine_info,
         measure,
+        opencv_run,
         results_path,
         tracemalloc_peak_mb,
         write_results,
@@ -709,16 +708,8 @@ def summary_rows(rows):
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    group = parser.add_mutually_exclusive_group()
-    group.add_argument("--quick", action="store_true", help="short timing rounds")
-    group.add_argument("--smoke", action="store_true", help="toy sizes, one round")
-    args = parser.parse_args(argv)
-    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    mode, info = opencv_run(__doc__, argv, "toy sizes, one round")
     wall = time.perf_counter()
-    info = machine_info("opencv-python-headless", "optimistix")
-    info["opencv"] = cv2.__version__
-    info["jax_compilation_cache_dir"] = jax.config.jax_compilation_cache_dir
     print(
         f"fisheye benchmark ({mode}): mvcalib against cv2.fisheye (OpenCV {cv2.__version__}), "
         f"jax {info['jax']} on {info['jax_backend']}, {info['cpu_count']} CPUs, float64\n"

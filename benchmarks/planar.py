@@ -46,7 +46,6 @@ Run from the repository root: `python -m benchmarks.planar [--quick | --smoke]` 
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import jax
@@ -57,9 +56,9 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 try:
-    from ._common import first_and_warm, machine_info, measure, results_path, write_results
+    from ._common import first_and_warm, measure, opencv_run, results_path, write_results
 except ImportError:  # run as a script
-    from _common import first_and_warm, machine_info, measure, results_path, write_results
+    from _common import first_and_warm, measure, opencv_run, results_path, write_results
 
 import mvcalib as mc  # noqa: E402
 
@@ -250,16 +249,8 @@ def summary_rows(rows):
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    group = parser.add_mutually_exclusive_group()
-    group.add_argument("--quick", action="store_true", help="short timing rounds")
-    group.add_argument("--smoke", action="store_true", help="V = 6 only, one round")
-    args = parser.parse_args(argv)
-    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    mode, info = opencv_run(__doc__, argv, "V = 6 only, one round")
     wall = time.perf_counter()
-    info = machine_info("opencv-python-headless", "optimistix")
-    info["opencv"] = cv2.__version__
-    info["jax_compilation_cache_dir"] = jax.config.jax_compilation_cache_dir
     print(
         f"planar benchmark ({mode}): mvcalib calibrate_planar against cv2.calibrateCamera "
         f"(OpenCV {cv2.__version__}), jax {info['jax']} on {info['jax_backend']}, "
