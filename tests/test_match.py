@@ -421,6 +421,15 @@ def test_cli_observes_a_marked_grid_and_calibrates_the_rig(tmp_path):
     assert centre_errors(rig, rig_cameras).max() < 1e-3
     out = run_cli("observe-grid", *flags, "--camera", cameras[0][1], "--camera", "-", "-")
     assert out.returncode == 2 and "as many photos" in out.stderr, out.stderr
+    # one camera's photos alone calibrate that camera, as OpenCV's calibrateCamera does
+    alone = [path for path in cameras[0][1:] if path != "-"]
+    one = [*flags[:-1], tmp_path / "one.csv"]
+    assert run_cli("observe-grid", *one, "--camera", *alone).returncode == 0
+    out = run_cli("calibrate-rig", tmp_path / "one.csv", "--out", tmp_path / "one.json", "--quiet")
+    assert out.returncode == 0, out.stdout + out.stderr
+    camera, _ = mc.io.load_json(tmp_path / "one.json")
+    focal = np.asarray(camera.alpha_u) / np.asarray(rig.cameras.alpha_u[0]) - 1
+    assert len(alone) >= 6 and np.abs(focal).max() < 1e-3, (len(alone), focal)
 
 
 def test_observe_grid_and_its_cli_take_an_asymmetric_grid(tmp_path):
