@@ -361,11 +361,12 @@ def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     T1, T2 = _similarity(src), _similarity(dst)
     a = src @ T1[:2, :2].T + T1[:2, 2]
     b = dst @ T2[:2, :2].T + T2[:2, 2]
-    rows = []
-    for (x, y), (u, v) in zip(a, b):
-        rows.append([x, y, 1, 0, 0, 0, -u * x, -u * y, -u])
-        rows.append([0, 0, 0, x, y, 1, -v * x, -v * y, -v])
-    H = np.linalg.inv(T2) @ np.linalg.svd(np.asarray(rows))[2][-1].reshape(3, 3) @ T1
+    (x, y), (u, v), one, zero = a.T, b.T, np.ones(len(a)), np.zeros(len(a))
+    rows = np.stack(
+        [np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], 1),
+         np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], 1)], 1
+    ).reshape(-1, 9)  # fmt: skip
+    H = np.linalg.inv(T2) @ np.linalg.svd(rows)[2][-1].reshape(3, 3) @ T1
     return H / H[2, 2]  # (the SVD's sign is arbitrary; points in front have h_3 > 0)
 
 
