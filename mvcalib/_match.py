@@ -28,7 +28,7 @@ from . import _label
 from ._camera import Camera
 from ._detect import Detection
 from ._label import Labels, _size_ratios
-from .targets import Target, _grid_lattice, _marker_ids, _placements
+from .targets import Target, _grid_lattice, _grid_symmetries, _marker_ids, _placements
 
 __all__ = ["label_grid", "match_dots"]
 
@@ -520,7 +520,7 @@ def label_grid(
     # are blobs beside it that joined the lattice (clutter), dropped if every other placement
     # leaves two more off.
     keys = np.array(list(lattice))
-    symmetries = len(_placements(grid, grid)[0])
+    symmetries = len(_grid_symmetries(rows, cols, asymmetric))
     spare = max(1, len(keys) // 30)  # (keys that may be dropped as clutter)
     placements, det, off = _placements(keys, grid, slack=spare + 1)
     fewest = off.min(initial=spare + 1)

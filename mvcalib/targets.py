@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 
 import numpy as np
@@ -191,7 +192,7 @@ def dot_grid(
     markers = _marker_ids(markers, rows * cols)
     if not len(markers):
         return grid
-    moves = _placements(*[_grid_lattice(rows, cols, asymmetric)] * 2)[0]
+    moves = _grid_symmetries(rows, cols, asymmetric)
     moved = [np.sort(move[markers]) for move in moves if np.any(move != np.arange(len(move)))]
     if any(np.array_equal(ids, markers) for ids in moved):
         raise ValueError(
@@ -238,7 +239,7 @@ def _placements(keys: np.ndarray, lattice: np.ndarray, slack: int = 0):
     **Returns:** under each placement, the dot id of every key, -1 where it is off the grid,
     `(P, n)`; each placement's determinant `(P,)` (+1 keeps the keys' handedness: the board seen
     from the side they assume; -1 mirrors it); and how many keys each leaves off the grid `(P,)`.
-    `_placements(lattice, lattice)[0]` are the grid's symmetries.
+    `_placements(lattice, lattice)[0]` are the grid's symmetries (`_grid_symmetries`).
     """
     keys, lattice = np.asarray(keys, int).reshape(-1, 2), np.asarray(lattice, int)
     pad = int(slack > 0)  # (keys a step beyond the grid, off it)
@@ -259,6 +260,17 @@ def _placements(keys: np.ndarray, lattice: np.ndarray, slack: int = 0):
     off = np.sum(ids < 0, axis=-1)
     keep = off <= slack
     return ids[keep], np.array(dets, int).reshape(-1)[keep], off[keep]
+
+
+@functools.cache
+def _grid_symmetries(rows: int, cols: int, asymmetric: bool = False) -> np.ndarray:
+    """The moves of a grid onto itself `(S, M)`, each as the ids its dots move to (the identity
+    among them): `_placements` of its lattice on itself, once a layout (`label_grid` asks for
+    every photo)."""
+    lattice = _grid_lattice(rows, cols, asymmetric)
+    moves = _placements(lattice, lattice)[0]
+    moves.flags.writeable = False  # (shared by every caller)
+    return moves
 
 
 def _layout(target: Target) -> tuple[int, int, bool]:
