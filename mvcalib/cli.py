@@ -337,8 +337,10 @@ def build_parser() -> argparse.ArgumentParser:
         "a rig's observations of a marked dot grid, from photos",
         "Detect and label a printed dot grid (`mvcalib.targets.dot_grid`) in every photo of "
         "every camera, the grid moved through the rig's volume, and write the observations "
-        "for `mvcalib calibrate-rig`. A few dots printed larger (--markers) give every dot the "
-        "same id in every camera; photos that cannot be labelled with certainty are left out.",
+        "for `mvcalib calibrate-rig`. A few dots printed larger (--markers), or OpenCV's "
+        "asymmetric grid of odd rows (--asymmetric), give every dot the same id in every "
+        "camera; photos that cannot be labelled with certainty are left out. With one --camera, "
+        "calibrate-rig then calibrates that camera alone.",
     )
     grid.add_argument(
         "--grid", nargs=3, required=True, type=float, metavar=("ROWS", "COLS", "SPACING"),
@@ -637,11 +639,11 @@ def _align(names, data, path):
 
 def _calibrated(cameras):
     """Per camera: are all its parameters finite (failed cameras are saved as NaN)?"""
-    import jax
     import numpy as np
 
-    leaves = jax.tree_util.tree_leaves(cameras)
-    return np.all([np.isfinite(np.asarray(a)).reshape(len(a), -1).all(-1) for a in leaves], 0)
+    from ._camera import finite_cameras
+
+    return np.asarray(finite_cameras(cameras))
 
 
 def _count(n: int, what: str) -> str:
