@@ -14,13 +14,14 @@ Padding changes nothing that is returned. A padded point is hidden (`mask` False
 `world` and `pixels`), and hidden points have no influence at all. A padded camera is a copy of
 the last camera, whose answer does not depend on the others in its batch (inverse iteration
 goes on while any camera does, the others keeping their vectors); refinement sees it as a
-camera without a seed, whose problem ends at once. `calibrate_rig` pads its frames, in coarser
-buckets (a recording's length changes with every recording), with frames nobody saw, which its
-solves hold still: they round differently, so its answer is the same to the solves' tolerance
-(steps of 1e-5 standard errors), not to the last digit. The padding is done on the host in
-NumPy (on a CPU that is the arrays' own memory), so that a new shape compiles nothing but the
-bucket's program. Inside the user's traced code, shapes are theirs: padding would only add work
-to the program they compile anyway.
+camera without a seed, whose problem ends at once. `calibrate_rig` pads its frames and
+`calibrate_planar` its views, in coarser buckets (a recording's length changes with every
+recording), with frames or views nobody saw, which their solves hold still: they round
+differently, so the answer is the same to the solves' tolerance (steps of 1e-5 standard
+errors), not to the last digit. The padding is done on the host in NumPy (on a CPU that is the
+arrays' own memory), so that a new shape compiles nothing but the bucket's program. Inside the
+user's traced code, shapes are theirs: padding would only add work to the program they compile
+anyway.
 
 Programs are compiled by `jit` (in a build that compiles quickly when small) and, where a call
 runs several one after the other, on other threads at the same time (`ahead`).
