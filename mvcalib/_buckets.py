@@ -16,12 +16,13 @@ the last camera, whose answer does not depend on the others in its batch (invers
 goes on while any camera does, the others keeping their vectors); refinement sees it as a
 camera without a seed, whose problem ends at once. `calibrate_rig` pads its frames and
 `calibrate_planar` its views, in coarser buckets (a recording's length changes with every
-recording), with frames or views nobody saw, which their solves hold still: they round
-differently, so the answer is the same to the solves' tolerance (steps of 1e-5 standard
-errors), not to the last digit. The padding is done on the host in NumPy (on a CPU that is the
-arrays' own memory), so that a new shape compiles nothing but the bucket's program. Inside the
-user's traced code, shapes are theirs: padding would only add work to the program they compile
-anyway.
+recording), with frames or views nobody saw, and `refine_rig` its cameras and points, with
+cameras that see nothing and points nobody sees, which their solves hold still: these joint
+solves round differently, so the answer is the same to the solves' tolerance (steps of 1e-5
+standard errors), not to the last digit. The padding is done on the host in NumPy (on a CPU
+that is the arrays' own memory), so that a new shape compiles nothing but the bucket's program.
+Inside the user's traced code, shapes are theirs: padding would only add work to the program
+they compile anyway.
 
 Programs are compiled by `jit` (in a build that compiles quickly when small) and, where a call
 runs several one after the other, on other threads at the same time (`ahead`).

@@ -4,6 +4,7 @@ import functools
 import logging
 from unittest import mock
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -274,3 +275,56 @@ def test_photos_of_other_numbers_reuse_the_planar_programs(caplog):
     np.testing.assert_array_equal(full.status, alone.status)
     np.testing.assert_allclose(full.K, alone.K, rtol=1e-9)
     np.testing.assert_allclose(full.rms, alone.rms, rtol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["anchored", "free points", "shared intrinsics"])
+def test_rigs_of_other_sizes_reuse_the_joint_refinement(caplog, kind):
+    """`refine_rig` pads a concrete rig up to a bucket of cameras and points (at least 4 and 64)
+    with cameras that see nothing and points nobody sees: rigs of 3 and 4 cameras of 27 and 48
+    points compile its solve once. The answer is the unpadded solve's to its tolerance (steps of
+    1e-5 relative; measured: the same steps, RMS 1e-14 to 1e-8 apart relative)."""
+    import mvcalib._bundle
+
+    def problem(n_cameras, n):
+        target = mc.targets.box_corner_grid(n)
+        rig = mc.synthetic.random_rig(jax.random.key(n_cameras), n_cameras, target, noise=0.3)
+        world, pixels, mask = (np.asarray(x) for x in (rig.world, rig.pixels, rig.mask))
+        if kind == "shared intrinsics":  # one physical camera seen in several snapshots
+            same = tuple(np.full(n_cameras, v) for v in (1400.0, 1392.0, 512.0, 541.0))
+            cameras = eqx.tree_at(lambda c: (c.alpha_u, c.alpha_v, c.u0, c.v0), rig.cameras, same)
+            observed = mc.synthetic.observe(jax.random.key(n), cameras, world, 0.3, rig.image_size)
+            pixels, mask = (np.asarray(x) for x in observed[1:])
+        seed = mc.calibrate(world, pixels, mask).cameras
+        seed = jax.tree_util.tree_map(
+            np.asarray, eqx.tree_at(lambda c: c.skew, seed, 0 * seed.skew)
+        )
+        options = dict(distortion=())
+        if kind == "shared intrinsics":
+            options["shared_intrinsics"] = True
+        else:  # the same 9 anchors (their number is part of the program's shape)
+            options.update(anchors=(np.arange(9), world[:9]), anchor_sigma=0.1)
+        if kind == "free points":
+            world = world + np.random.default_rng(n).normal(scale=0.5, size=world.shape)
+            options.update(points="free", fix=("u0", "v0", "skew"))  # (3 cameras: else slow)
+        return (seed, world, pixels, mask), options
+
+    problems = [problem(c, n) for c, n in ((4, 3), (3, 4), (4, 4))]
+    jax.clear_caches()
+    with caplog.at_level(logging.DEBUG), jax.log_compiles():
+        padded = [mc.refine_rig(*args, **options) for args, options in problems]
+    assert len(_compiled_on(caplog, "_refine_rig")) == 1
+    no_padding = {"MIN_CAMERAS": 1, "MIN_POINTS": 1, "BITS": 30}
+    for (args, options), out in zip(problems, padded):
+        C, N = args[2].shape[:2]
+        assert out.cameras.batch_shape == (C,) and out.world.shape == (N, 3)
+        assert out.rms_after.shape == out.used.shape == (C,)
+        with mock.patch.multiple(mvcalib._bundle, **no_padding):
+            alone = mc.refine_rig(*args, **options)
+        assert bool(out.ok) and int(out.iterations) == int(alone.iterations)
+        np.testing.assert_allclose(out.rms_after, alone.rms_after, rtol=1e-7)
+        scale = np.abs(np.asarray(alone.cameras.center)).max()
+        assert np.abs(np.asarray(out.cameras.center - alone.cameras.center)).max() < 1e-7 * scale
+        np.testing.assert_allclose(
+            out.world, alone.world, rtol=0, atol=1e-7 * np.abs(args[1]).max()
+        )
+        np.testing.assert_allclose(out.transform.t, alone.transform.t, atol=1e-7 * scale)
