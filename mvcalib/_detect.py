@@ -17,7 +17,7 @@ import dataclasses
 
 import numpy as np
 from scipy import ndimage
-from scipy.special import chndtr, i0e, i1e  # SciPy comes with scikit-image
+from scipy.special import i0e, i1e  # SciPy comes with scikit-image
 from skimage import color, filters, measure, morphology
 
 __all__ = ["Detection", "detect_dots"]
@@ -177,7 +177,14 @@ def _ellipse_error(subtracted, region, level) -> float:
     # The blob's bounding box grown by 2 px, clipped to the image.
     R0, C0, R1, C1 = max(r0 - 2, 0), max(c0 - 2, 0), min(r1 + 2, height), min(c1 + 2, width)
     window[R0 - r0 + 2 : R1 - r0 + 2, C0 - c0 + 2 : C1 - c0 + 2] = subtracted[R0:R1, C0:C1]
-    window[~morphology.dilation(own, morphology.disk(1))] = 0.0  # other blobs do not count
+    # Other blobs do not count: only the blob grown by a pixel (a dilation by `disk(1)`, the
+    # 3 x 3 cross, written out: 9x faster on a blob's box)
+    grown = own.copy()
+    grown[1:] |= own[:-1]
+    grown[:-1] |= own[1:]
+    grown[:, 1:] |= own[:, :-1]
+    grown[:, :-1] |= own[:, 1:]
+    window[~grown] = 0.0
     contours = measure.find_contours(window, level)
     outline = max(contours, key=len) if contours else np.zeros((0, 2))
     if len(outline) < 6:
@@ -410,7 +417,29 @@ def _disc_window(r, radius, sigma):
     return window, slope
 
 
+def _disc_profile(r, radius, sigma):
+    """The blurred disc's radial profile M and its window w = -M'(r) / r (`_disc_window`) at the
+    evenly spaced `r` from 0 on, out to where M has vanished (a few `sigma` beyond `radius`).
+
+    M(r) = integral of -M'(t) over t > r, by the trapezoid rule summed from the far end with
+    Euler-Maclaurin's end correction, -h^2 / 12 (f'(end) - f'(r)): within 4e-8 of its exact
+    value (the noncentral chi-square distribution, SciPy's `chndtr`, which took 0.13-0.7 ms a
+    blob against 0.07 ms) at 1024 samples, for discs of 1 to 25 px."""
+    window, slope = _disc_window(r, radius, sigma)
+    f, df = window * r, window + r * slope  # -M'(r) and its derivative
+    h = r[1] - r[0]
+    trapezoids = 0.5 * h * (f[1:] + f[:-1])
+    tail = np.append(np.cumsum(trapezoids[::-1])[::-1], 0.0)
+    return window, tail - h * h / 12 * (df[-1] - df)
+
+
 _PROFILE_SAMPLES = 1024
+
+
+def _squared_norm(offsets, metric):
+    """`x^T metric x` for each row `x` of `offsets` `(n, 2)` (4x as fast as `np.einsum`)."""
+    x, y = offsets[:, 0], offsets[:, 1]
+    return metric[0, 0] * x * x + (metric[0, 1] + metric[1, 0]) * x * y + metric[1, 1] * y * y
 
 
 def _weighted_centroid(grey, labels, region, margin, smooth, dark_dots):
@@ -471,18 +500,18 @@ def _weighted_centroid(grey, labels, region, margin, smooth, dark_dots):
     to_circle = axes * (radius / semi)  # maps the ellipse onto the disc of that radius
     metric = to_circle @ to_circle.T
 
-    # The blurred disc's profile M(r), tabulated once a blob (SciPy's noncentral chi-square,
-    # 1.75 ms for 3,000 pixels, was most of the detection's time), interpolated linearly:
-    # off by at most 1e-4 of its peak, and a function of r like M, so as centrally symmetric
-    reach_r = float(np.sqrt(np.max(np.einsum("ni,ij,nj->n", xy - start, metric, xy - start))))
+    # The blurred disc's profile M(r) and window, tabulated once a blob (evaluated at every
+    # pixel in every step, they were most of the detection's time), interpolated linearly: off
+    # by at most 1e-4 of their peaks, and functions of r like M, so as centrally symmetric
+    reach_r = float(np.sqrt(np.max(_squared_norm(xy - start, metric))))
     table_r = np.linspace(0.0, reach_r + 2.0 * (radius + margin) + 1.0, _PROFILE_SAMPLES)
-    table = chndtr((radius / sigma) ** 2, 2, (table_r / sigma) ** 2)
+    table_w, table = _disc_profile(table_r, radius, sigma)
     centre = start
     for _ in range(20):  # Newton's method on sum M(|x - c|) I(x) (x - c) = 0; ~3 steps
         offset = xy - centre
-        r = np.sqrt(np.einsum("ni,ij,nj->n", offset, metric, offset))
+        r = np.sqrt(_squared_norm(offset, metric))
         profile = np.interp(r, table_r, table)  # the blurred disc
-        slope, _ = _disc_window(r, radius, sigma)  # -M'(r) / r
+        slope = np.interp(r, table_r, table_w)  # -M'(r) / r
         mw = w * profile
         if not mw.sum() > 0:
             return None, 0.0
