@@ -325,6 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     images.add_argument(
         "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
     )
+    images.add_argument("--workers", **_WORKERS)
     images.add_argument(
         "--no-second-look",
         action="store_true",
@@ -363,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="one camera's photos in frame order ('-' where it took none); once per camera",
     )  # fmt: skip
     grid.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
+    grid.add_argument("--workers", **_WORKERS)
     grid.add_argument("--out", required=True, metavar="CSV", help="observations file to write")
 
     demo = command(
@@ -444,6 +446,8 @@ def _check_usage(parser, args) -> None:
         rows, cols, spacing = args.grid
         if rows != int(rows) or cols != int(cols) or rows < 2 or cols < 2 or not spacing > 0:
             parser.error(f"--grid ROWS COLS SPACING: got {' '.join(map(str, args.grid))}")
+    if getattr(args, "workers", None) is not None and args.workers < 1:
+        parser.error(f"--workers must be at least 1; got {args.workers}")
     if args.command == "calibrate-images":
         for flag in ("target", "clicks"):
             if getattr(args, flag) and not pathlib.Path(getattr(args, flag)).is_file():
@@ -1080,6 +1084,7 @@ def _calibrate_images(args) -> int:
         focal=args.focal,
         progress=not args.quiet,
         second_look=not args.no_second_look,
+        workers=_workers(args, len(args.images)),
     )
     print(result)
     io.save_json(
@@ -1097,6 +1102,25 @@ def _calibrate_images(args) -> int:
     n_ok = int(result.ok.sum())
     print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
     return 0 if n_ok == len(result.names) else 1
+
+
+# --workers: processes that read the photos and find their dots (`_images._in_workers`)
+_WORKERS = dict(
+    type=int, metavar="N",
+    help="processes that read the photos and find their dots (default: one a core from 16 "
+    "photos on, else 1)",
+)  # fmt: skip
+# From this many photos on, the default is a worker a core: each takes ~1 s to start.
+_MANY_PHOTOS = 16
+
+
+def _workers(args, n_photos: int) -> int:
+    """--workers, or its default: a process a core with `_MANY_PHOTOS` photos or more."""
+    import os
+
+    if args.workers is not None:
+        return args.workers
+    return (os.cpu_count() or 1) if n_photos >= _MANY_PHOTOS else 1
 
 
 def _check_seeds(args, target, seeds) -> None:
@@ -1149,8 +1173,9 @@ def _observe_grid(args) -> int:
     say = _progress(args)
     say(f"labelling {_count(sum(p is not None for c in photos for p in c), 'photo')} of "
         f"{_count(len(photos), 'camera')}")  # fmt: skip
+    workers = _workers(args, sum(p is not None for camera in photos for p in camera))
     obs = observe_grid(photos, grid, names=names, detect=dict(dark_dots=not args.bright_dots),
-                       progress=not args.quiet)  # fmt: skip
+                       progress=not args.quiet, workers=workers)  # fmt: skip
     labelled = np.asarray(obs.mask).any(-1)
     for name, camera, row in zip(names, photos, labelled):
         print(f"{name}: {int(row.sum())} of {sum(p is not None for p in camera)} photos labelled")

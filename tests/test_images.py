@@ -1,6 +1,7 @@
 """From photographs to cameras: calibrate_images, the image demo, the rig file, and the CLI."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -85,6 +86,13 @@ def test_bad_images_are_flagged_and_the_good_ones_calibrated_as_if_alone(tmp_pat
         result.raise_if_failed()
     with pytest.raises(mc.CalibrationError):
         mc.calibrate_images(good + bad[:1], TARGET, strict=True)
+    # the same read and detected in two worker processes, the bad images' reasons included
+    environment = dict(os.environ)
+    in_workers = mc.calibrate_images(good + bad, TARGET, workers=2)
+    assert in_workers.messages == result.messages and dict(os.environ) == environment
+    np.testing.assert_array_equal(in_workers.calibration.P, result.calibration.P)
+    with pytest.raises(ValueError, match="at least 1"):
+        mc.calibrate_images(good, TARGET, workers=0)
 
 
 def test_removing_the_perspective_bias_of_the_dots_brings_the_cameras_closer():

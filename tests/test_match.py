@@ -3,6 +3,7 @@ bad input, and OpenPTV's real cavity photographs seeded by its own clicked point
 
 import functools
 import json
+import os
 import re
 
 import jax
@@ -394,6 +395,29 @@ def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
         mc.observe_grid([photos[0], photos[1][:3]], grid)
     with pytest.raises(ValueError, match="not a grid of dots"):
         mc.observe_grid(photos, mc.targets.box_corner())
+
+
+def test_photos_labelled_in_worker_processes_give_the_same_observations(tmp_path, capsys):
+    """`observe_grid(..., workers=2)`: the photos (arrays and files, one of them not an image)
+    read and labelled in two processes give the observations of one process, with progress."""
+    import imageio.v3 as iio
+
+    grid, _, photos = marked_grid_rig()
+    taken = [photo for photo in photos[0] if photo is not None][:6]
+    iio.imwrite(tmp_path / "p0.png", taken[0])
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    camera = [tmp_path / "p0.png", *taken[1:], tmp_path / "broken.png"]
+    alone = mc.observe_grid([camera], grid)
+    environment = dict(os.environ)
+    shared = mc.observe_grid([camera], grid, workers=2, progress=True)
+    assert dict(os.environ) == environment  # (the workers' one BLAS thread is theirs only)
+    np.testing.assert_array_equal(shared.pixels, alone.pixels)
+    assert shared.mask.any(-1).tolist() == [[True] * 6 + [False]]
+    err = capsys.readouterr().err
+    assert "cam0, frame 6: " in err and "cannot be read" in err
+    assert "observe_grid: 7 of 7 photos, 6 labelled" in err
+    with pytest.raises(ValueError, match="at least 1"):
+        mc.observe_grid([camera], grid, workers=0)
 
 
 def test_cli_observes_a_marked_grid_and_calibrates_the_rig(tmp_path):
