@@ -346,28 +346,45 @@ def match_dots(
     return Labels.matched(blobs, index, rms, message)
 
 
-def _similarity(points: np.ndarray) -> np.ndarray:
-    """Hartley's normalising similarity `(3, 3)` of `points (n, 2)` (`_label._normalise`)."""
-    _, s, c = _label._normalise(points)  # noqa: SLF001
-    s, (cx, cy) = float(np.squeeze(s)), c.reshape(2)
-    return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
-
-
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """The homography `(3, 3)` taking `src (n, 2)` to `dst (n, 2)`, n >= 4, by the normalised
     DLT (NumPy: a few dozen points on the host, no compile; `_planar._homography_kernel` is the
-    batched, differentiable one).
-    """
-    T1, T2 = _similarity(src), _similarity(dst)
-    a = src @ T1[:2, :2].T + T1[:2, 2]
-    b = dst @ T2[:2, :2].T + T2[:2, 2]
-    (x, y), (u, v), one, zero = a.T, b.T, np.ones(len(a)), np.zeros(len(a))
+    batched, differentiable one)."""
+    return _homographies(src[None], dst[None], np.ones((1, len(src)), bool))[0]
+
+
+def _homographies(src: np.ndarray, dst: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """The homographies `(B, 3, 3)` taking each batch's points `src (B, n, 2)` to `dst (B, n,
+    2)`, of the points `used (B, n)` (at least 4 a batch), by the normalised DLT: Hartley's
+    similarity of each side's used points (`_label._normalise`'s), then the SVD of the
+    equations' rows, those of unused points zero (rows of zeros leave the right singular
+    vectors as they are). One LAPACK call for the batch: `label_grid`'s local fits were a
+    Python loop of ~600 SVDs a photo."""
+    w = used[..., None].astype(float)
+    count = w.sum(-2, keepdims=True)
+
+    def normalised(points):
+        centroid = (w * points).sum(-2, keepdims=True) / count
+        rms = np.sqrt((w * (points - centroid) ** 2).sum((-2, -1), keepdims=True) / count)
+        scale = np.sqrt(2.0) / np.maximum(rms, 1e-300)
+        T = np.zeros(points.shape[:-2] + (3, 3))
+        T[..., 0, 0] = T[..., 1, 1] = scale[..., 0, 0]
+        T[..., :2, 2] = -scale[..., 0, :] * centroid[..., 0, :]
+        T[..., 2, 2] = 1.0
+        return (points - centroid) * scale, T
+
+    (a, T1), (b, T2) = normalised(src), normalised(dst)
+    (x, y), (u, v) = np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0)
+    one, zero = np.ones_like(x), np.zeros_like(x)
     rows = np.stack(
-        [np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], 1),
-         np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], 1)], 1
-    ).reshape(-1, 9)  # fmt: skip
-    H = np.linalg.inv(T2) @ np.linalg.svd(rows)[2][-1].reshape(3, 3) @ T1
-    return H / H[2, 2]  # (the SVD's sign is arbitrary; points in front have h_3 > 0)
+        [np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], -1),
+         np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], -1)], -2
+    ) * w[..., None]  # fmt: skip
+    rows = rows.reshape(len(rows), -1, 9)
+    # (the least right singular vector; with 4 points, 8 rows, only the full V holds it)
+    h = np.linalg.svd(rows, full_matrices=rows.shape[1] < 9)[2][:, -1].reshape(-1, 3, 3)
+    H = np.linalg.inv(T2) @ h @ T1
+    return H / H[:, 2:, 2:]  # (the SVD's sign is arbitrary; points in front have h_3 > 0)
 
 
 def _cross(a, b) -> float:
@@ -391,10 +408,15 @@ def _local_predictions(H, nodes, known, pixels):
     out = _apply(H, nodes)
     if len(known) < _LOCAL_POINTS:
         return out
-    for k, node in enumerate(nodes):
-        near = np.max(np.abs(known - node), axis=1) <= _LOCAL_STEPS
-        if near.sum() >= _LOCAL_POINTS:
-            out[k] = _apply(_homography(known[near], pixels[near]), node[None])[0]
+    near = np.max(np.abs(known[None] - nodes[:, None]), axis=-1) <= _LOCAL_STEPS  # (nodes, known)
+    local = near.sum(1) >= _LOCAL_POINTS
+    if not local.any():
+        return out
+    # each node's near points first, then as many unused ones as the most crowded node has near
+    near = near[local]
+    order = np.argsort(~near, axis=1, kind="stable")[:, : near.sum(1).max()]
+    fitted = _homographies(known[order], pixels[order], np.take_along_axis(near, order, 1))
+    out[local] = _apply(fitted, nodes[local])
     return out
 
 
@@ -405,7 +427,9 @@ def _extent(keys: np.ndarray) -> str:
 
 
 def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    h = points @ H[:, :2].T + H[:, 2]
+    """`points (n, 2)` through the homography `H (3, 3)`, or each through its own `(n, 3, 3)`;
+    NaN behind it."""
+    h = np.einsum("...ij,...j->...i", H[..., :2], points) + H[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(h[:, 2:] > 0, h[:, :2] / h[:, 2:], np.nan)
 
