@@ -30,9 +30,10 @@ _EXPORTS = {
     "_camera": ("Camera", "distort", "image_to_pixel", "pixel_to_image", "undistort_points"),
     "_detect": ("Detection", "detect_dots"),
     "_dlt": ("dlt",),
-    "_images": ("ImageCalibration", "calibrate_images", "observe_grid", "read_image"),
+    "_images": ("ImageCalibration", "calibrate_images", "observe_grid"),
     "_label": ("Labels", "label_dots"),
     "_match": ("label_grid", "match_dots"),
+    "_photos": ("read_image",),
     "_pipeline": ("Calibration", "CalibrationError", "calibrate"),
     "_planar": ("PlanarCalibration", "calibrate_planar"),
     "_refine": ("Cauchy", "Huber", "Refinement", "SecantLM", "refine"),
@@ -88,11 +89,11 @@ if typing.TYPE_CHECKING:
     from ._images import ImageCalibration as ImageCalibration
     from ._images import calibrate_images as calibrate_images
     from ._images import observe_grid as observe_grid
-    from ._images import read_image as read_image
     from ._label import Labels as Labels
     from ._label import label_dots as label_dots
     from ._match import label_grid as label_grid
     from ._match import match_dots as match_dots
+    from ._photos import read_image as read_image
     from ._pipeline import Calibration as Calibration
     from ._pipeline import CalibrationError as CalibrationError
     from ._pipeline import calibrate as calibrate

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import pathlib
 import sys
 
 import equinox as eqx
@@ -14,9 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _buckets
-from ._detect import Detection, detect_dots
+from ._detect import Detection
 from ._label import Labels, label_dots
 from ._match import match_dots
+from ._photos import _grid_labels, _in_workers, _read_and_detect, read_image
 from ._pipeline import Calibration, CalibrationError, calibrate
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
@@ -27,110 +27,6 @@ from ._triangulate import triangulate
 from .targets import Target, _layout, box_corner
 
 __all__ = ["ImageCalibration", "calibrate_images", "read_image"]
-
-
-def read_image(path) -> np.ndarray:
-    """Read an image file as an array, or raise `ValueError` saying what is wrong with it.
-
-    TIFF through tifffile (8/16-bit, compressed with the `imagecodecs` package), every other
-    format (PNG, JPEG, BMP, GIF, ...) through Pillow: both come with scikit-image. Grey or colour.
-    """
-    import imageio.v3 as iio  # scikit-image's own image I/O; imported only when files are read
-
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file")
-    # One named reader per format: imageio's own search would also try other installed
-    # readers (OpenCV's prints its failures to stderr).
-    tiff = path.suffix.lower() in (".tif", ".tiff")
-    try:
-        # The first frame of an animation (GIF, APNG); a TIFF's first page.
-        image = (
-            iio.imread(path, plugin="tifffile", key=0)
-            if tiff
-            else iio.imread(path, index=0, plugin="pillow")
-        )
-    except Exception as error:  # every reader raises its own kind; all mean "not an image"
-        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise ValueError(f"{path}: cannot be read as an image ({reason[:200]})") from None
-    image = np.asarray(image)
-    if image.size == 0:  # (tifffile warns about a broken file and returns nothing)
-        raise ValueError(f"{path}: cannot be read as an image (no image data in the file)")
-    if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
-        image = np.moveaxis(image, 0, -1)  # planar (channels-first) TIFFs
-    return image
-
-
-# The variables that set how many threads OpenMP and the BLAS libraries under NumPy start.
-_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def _in_workers(fun, items: list, workers: int | None):
-    """`map(fun, items)`, in order: here, or on `workers` processes (started by "spawn", which
-    is safe beside JAX's threads, where "fork" is not). A photo's detection is Python, NumPy and
-    scikit-image work that threads would share one core for (measured: 0.89x with two threads).
-    `fun` must be a module-level function (or a `functools.partial` of one) and catch its own
-    errors; a worker that dies (say, a script that starts processes without the main guard)
-    raises a `RuntimeError` saying so."""
-    workers = 1 if workers is None else int(workers)
-    if workers < 1:
-        raise ValueError(f"`workers` must be at least 1; got {workers}.")
-    if workers == 1 or len(items) < 2:
-        yield from map(fun, items)
-        return
-    import concurrent.futures
-    import multiprocessing
-
-    context = multiprocessing.get_context("spawn")
-    pool = concurrent.futures.ProcessPoolExecutor(min(workers, len(items)), mp_context=context)
-    # One BLAS thread a worker: OpenBLAS's own threads, one per core in every worker, fought
-    # over the cores (48 photos on 2 workers: 18.6 s, against 7.5 s so and 12.1 s in one
-    # process). The workers start in `map`, with the environment of that moment.
-    saved = {name: os.environ.get(name) for name in _THREADS}
-    os.environ.update(dict.fromkeys(_THREADS, "1"))
-    try:
-        results = pool.map(fun, items)
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-    try:
-        yield from results
-    except concurrent.futures.process.BrokenProcessPool as error:
-        raise RuntimeError(
-            "the worker processes stopped (`workers` > 1 starts new Python processes, which "
-            'import the main script again: call it under `if __name__ == "__main__":`, '
-            "or pass `workers=1`)"
-        ) from error
-    finally:  # (an error here, or a caller that stops early: the photos not begun are dropped)
-        pool.shutdown(cancel_futures=True)
-
-
-def _read_and_detect(image, detect: dict):
-    """A photo (array or path) and its dots: `(picture, detection, None)`, or `(None, None,
-    why)` where it cannot be read or searched (for `_in_workers`)."""
-    try:
-        picture = read_image(image) if isinstance(image, (str, os.PathLike)) else image
-        return picture, detect_dots(picture, **detect), None
-    except ValueError as error:
-        return None, None, str(error)
-
-
-def _grid_labels(photo, detect: dict, layout: tuple, markers, n_points: int) -> Labels:
-    """A photo's dots labelled as the grid `layout` `(rows, cols, asymmetric)`, or the failed
-    `Labels` saying why (for `_in_workers`)."""
-    from ._match import label_grid
-
-    picture, detection, why = _read_and_detect(photo, detect)
-    if detection is None:
-        return Labels.failed(n_points, 0, why)
-    rows, cols, asymmetric = layout
-    try:
-        return label_grid(detection, rows, cols, asymmetric=asymmetric, markers=markers)
-    except ValueError as error:
-        return Labels.failed(n_points, 0, str(error))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -520,8 +416,8 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     - `progress`: a line on stderr per photo flagged or unreadable, and ten on how far it got
       (default: with more than 20 photos).
     - `workers`: how many processes read and label the photos (default 1: this one). More
-      take as many cores, after a second or so to start: on this project's 2-core machine, 48
-      photos of a 9 x 12 grid took 12.3 s in one process and 7.6 s in two. They are new Python
+      take as many cores, after ~0.4 s to start: on this project's 2-core machine, 48 photos
+      of a 9 x 12 grid took 10.7 s in one process and 5.8 s in two. They are new Python
       processes, which import the main script again: in a script, call this under `if
       __name__ == "__main__":`.
 

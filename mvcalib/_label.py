@@ -25,12 +25,9 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
-import jax.numpy as jnp
 import numpy as np
 
-from . import _dlt
 from ._detect import Detection
-from ._pipeline import calibrate
 from .targets import Target
 
 __all__ = ["Labels", "label_dots"]
@@ -90,9 +87,18 @@ class Labels:
         )
 
 
-def _fit(world, pixels, mask, max_relative_rms=_dlt.DEFAULT_MAX_RELATIVE_RMS) -> np.ndarray:
+def _fit(world, pixels, mask, max_relative_rms=None) -> np.ndarray:
     """One camera's P `(3, 4)` by mvcalib's DLT on the visible dots; NaN if it fails (with
-    `max_relative_rms`, also if it fits them that poorly: `_dlt.poor_fit`)."""
+    `max_relative_rms`, default `calibrate`'s, also if it fits them that poorly:
+    `_dlt.poor_fit`)."""
+    # (JAX imported here only: `label_grid` in `_photos`' worker processes needs none of it)
+    import jax.numpy as jnp
+
+    from . import _dlt
+    from ._pipeline import calibrate
+
+    if max_relative_rms is None:
+        max_relative_rms = _dlt.DEFAULT_MAX_RELATIVE_RMS
     # `calibrate`'s program of the rig's shape bucket: the one the photos' calibration runs
     # afterwards, so that labelling compiles no DLT of its own
     dtype = jnp.result_type(float)  # float64 where the user enabled x64

@@ -25,7 +25,6 @@ from __future__ import annotations
 import numpy as np
 
 from . import _label
-from ._camera import Camera
 from ._detect import Detection
 from ._label import Labels, _size_ratios
 from .targets import Target, _grid_lattice, _grid_symmetries, _marker_ids, _placements
@@ -89,6 +88,8 @@ def _intrinsics(focal, principal_point, detection: Detection) -> np.ndarray | No
 def _guessed_intrinsics(P: np.ndarray) -> np.ndarray | None:
     """`K` of a camera `P` (zero skew), or None if it does not decompose."""
     import jax.numpy as jnp
+
+    from ._camera import Camera
 
     camera = Camera.from_projection(jnp.asarray(P), skew=False)
     K = np.asarray(camera.K, dtype=np.float64)
@@ -233,6 +234,8 @@ def match_dots(
     M, B = len(world), len(blobs)
     min_dots = min(10, M) if min_dots is None else int(min_dots)
     K = _intrinsics(focal, principal_point, detection)
+    from ._camera import Camera  # (JAX: imported where a camera is used, see `_photos`)
+
     clicks = None
     if isinstance(seed, Camera):
         if seed.batch_shape:

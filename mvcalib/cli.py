@@ -1104,7 +1104,7 @@ def _calibrate_images(args) -> int:
     return 0 if n_ok == len(result.names) else 1
 
 
-# --workers: processes that read the photos and find their dots (`_images._in_workers`)
+# --workers: processes that read the photos and find their dots (`_photos._in_workers`)
 _WORKERS = dict(
     type=int, metavar="N",
     help="processes that read the photos and find their dots (default: one a core from 16 "

@@ -26,6 +26,17 @@ def test_import_leaves_heavy_dependencies_out():
     assert out == ["[]", "[]"]
 
 
+def test_photo_workers_import_no_jax():
+    """The worker processes that read photos and label grids (`_photos._in_workers`) import
+    `_photos` and `_match` only: no JAX, so that each starts in a fraction of a second."""
+    code = (
+        "import sys, mvcalib._photos, mvcalib._match\n"
+        "print(sorted(m for m in ('jax', 'equinox') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["[]"]
+
+
 def test_every_public_name_resolves():
     assert len(mc.__all__) == len(set(mc.__all__))
     for name in mc.__all__:
