@@ -231,6 +231,14 @@ def test_cli_calibrate_images_writes_the_rig_and_flags_bad_files(tmp_path):
     assert "cannot be read" in result.stdout
 
 
+def test_cli_refuses_fewer_than_one_worker(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"not read: the arguments are checked first")
+    for command in (["calibrate-images", "a.png"], ["observe-grid", "--grid", "3", "3", "1",
+                                                     "--camera", "a.png"]):  # fmt: skip
+        result = _cli(*command, "--out", "out.csv", "--workers", "0", cwd=tmp_path)
+        assert result.returncode == 2 and "--workers must be at least 1" in result.stderr
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
