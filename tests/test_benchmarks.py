@@ -139,6 +139,23 @@ def test_first_call_times_fresh_processes_against_opencv(tmp_path, monkeypatch, 
     assert "break-even" in out and "cv2.calibrateCamera loop" in out
 
 
+def test_grid_photos_benchmark_smoke(tmp_path, monkeypatch, capsys):
+    # photos of OpenCV's asymmetric circles grid labelled by mvcalib and by findCirclesGrid,
+    # clean and cluttered, then through observe_grid in one process and in workers
+    grid_photos = benchmark_module("grid_photos")
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path)
+    payload = grid_photos.main(["--smoke"])
+    assert json.loads((tmp_path / "grid_photos.json").read_text()) == json.loads(
+        json.dumps(payload)
+    )
+    rows = {(r["sweep"], r["labeller"]): r for r in payload["results"]}
+    assert rows["clean", "mvcalib"]["right"] == rows["clutter", "mvcalib"]["right"] == 3
+    assert rows["clean", "OpenCV"]["right"] + rows["clean", "OpenCV"]["flagged"] == 3
+    assert rows["clean", "mvcalib"]["rms_px_right_views"] < 0.05
+    assert all(r["photos_labelled"] == 3 for r in payload["observe_grid_workers"].values())
+    assert "OpenCV's time over mvcalib's" in capsys.readouterr().out
+
+
 def test_fisheye_benchmark_smoke(tmp_path, monkeypatch, capsys):
     # mvcalib's fisheye lens against cv2.fisheye at toy sizes: projection, unprojection, planar
     # calibration and pose refinement, each timed against OpenCV and checked against it
