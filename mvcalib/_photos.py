@@ -2,7 +2,7 @@
 `mvcalib.calibrate_images` and `mvcalib.observe_grid`.
 
 This module imports no JAX (nor do `_detect`, `_label` and `_match` until they fit a camera):
-a worker process started by "spawn" imports it, and so starts in ~0.3 s rather than the ~1.3 s
+a worker process started by "spawn" imports it, and so starts in ~0.4 s rather than the ~1.3 s
 of mvcalib's JAX modules.
 """
 
@@ -72,8 +72,8 @@ def _in_workers(fun, items: list, workers: int | None):
     context = multiprocessing.get_context("spawn")
     pool = concurrent.futures.ProcessPoolExecutor(min(workers, len(items)), mp_context=context)
     # One BLAS thread a worker: OpenBLAS's own threads, one per core in every worker, fought
-    # over the cores (48 photos on 2 workers: 18.6 s, against 7.5 s so and 12.1 s in one
-    # process). The workers start in `map`, with the environment of that moment.
+    # over the cores (48 photos on 2 workers: 18.6 s, against 7.5 s with one thread each and
+    # 12.1 s in one process). The workers start in `map`, with the environment of that moment.
     saved = {name: os.environ.get(name) for name in _THREADS}
     os.environ.update(dict.fromkeys(_THREADS, "1"))
     try:

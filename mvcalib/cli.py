@@ -1107,20 +1107,25 @@ def _calibrate_images(args) -> int:
 # --workers: processes that read the photos and find their dots (`_photos._in_workers`)
 _WORKERS = dict(
     type=int, metavar="N",
-    help="processes that read the photos and find their dots (default: one a core from 16 "
-    "photos on, else 1)",
+    help="processes that read the photos and find their dots (default: one a core, at most 8, "
+    "from 16 photos on; else 1)",
 )  # fmt: skip
-# From this many photos on, the default is a worker a core: each takes ~1 s to start.
-_MANY_PHOTOS = 16
+# From this many photos on, the default is a worker a core (each takes ~0.4 s to start and
+# ~120 MB), at most `_MAX_WORKERS`.
+_MANY_PHOTOS, _MAX_WORKERS = 16, 8
 
 
 def _workers(args, n_photos: int) -> int:
-    """--workers, or its default: a process a core with `_MANY_PHOTOS` photos or more."""
+    """--workers, or its default: a process a core this process may use, at most
+    `_MAX_WORKERS`, with `_MANY_PHOTOS` photos or more; else 1."""
     import os
 
     if args.workers is not None:
         return args.workers
-    return (os.cpu_count() or 1) if n_photos >= _MANY_PHOTOS else 1
+    if n_photos < _MANY_PHOTOS:
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(cores or 1, _MAX_WORKERS))
 
 
 def _check_seeds(args, target, seeds) -> None:
