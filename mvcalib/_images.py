@@ -419,7 +419,8 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
       take as many cores, after ~0.4 s to start: on this project's 2-core machine, 48 photos
       of a 9 x 12 grid took 10.7 s in one process and 5.8 s in two. They are new Python
       processes, which import the main script again: in a script, call this under `if
-      __name__ == "__main__":`.
+      __name__ == "__main__":` (without it the workers stop, and the photos are read in this
+      process, with a line on stderr saying so).
 
     **Returns:** an `mvcalib.io.Observations`; a photo that could not be read or labelled leaves
     its frame unseen by that camera, and `observations.mask.any(-1)` says which were labelled.

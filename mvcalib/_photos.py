@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import sys
 
 import numpy as np
 
@@ -58,8 +59,8 @@ def _in_workers(fun, items: list, workers: int | None):
     is safe beside JAX's threads, where "fork" is not). A photo's detection is Python, NumPy and
     scikit-image work that threads would share one core for (measured: 0.89x with two threads).
     `fun` must be a module-level function (or a `functools.partial` of one) and catch its own
-    errors; a worker that dies (say, a script that starts processes without the main guard)
-    raises a `RuntimeError` saying so."""
+    errors. Where the workers die (say, in a script that starts processes without the main
+    guard), the photos they did not do are done here, with a line on stderr saying why."""
     workers = 1 if workers is None else int(workers)
     if workers < 1:
         raise ValueError(f"`workers` must be at least 1; got {workers}.")
@@ -84,14 +85,21 @@ def _in_workers(fun, items: list, workers: int | None):
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = value
+    done = 0
     try:
-        yield from results
-    except concurrent.futures.process.BrokenProcessPool as error:
-        raise RuntimeError(
-            "the worker processes stopped (`workers` > 1 starts new Python processes, which "
-            'import the main script again: call it under `if __name__ == "__main__":`, '
-            "or pass `workers=1`)"
-        ) from error
+        for result in results:
+            yield result
+            done += 1
+    except concurrent.futures.process.BrokenProcessPool:
+        # Workers that died (a script without the main guard, a sandbox that allows no new
+        # processes, memory): the photos not done yet are read here, with a word why.
+        print(
+            f"mvcalib: the worker processes stopped after {done} of {len(items)} photos; the "
+            "rest are read in this process (in a script, start workers under `if __name__ == "
+            '"__main__":`, or pass workers=1)',
+            file=sys.stderr,
+        )
+        yield from map(fun, items[done:])
     finally:  # (an error here, or a caller that stops early: the photos not begun are dropped)
         pool.shutdown(cancel_futures=True)
 

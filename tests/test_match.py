@@ -420,6 +420,24 @@ def test_photos_labelled_in_worker_processes_give_the_same_observations(tmp_path
         mc.observe_grid([camera], grid, workers=0)
 
 
+def _dies_in_a_worker(x):
+    """`2 x` here; a worker process that calls it dies."""
+    import multiprocessing
+
+    if multiprocessing.parent_process() is not None:
+        os._exit(3)
+    return 2 * x
+
+
+def test_photos_whose_workers_die_are_read_here(capsys):
+    """Workers that die (a script without the main guard, a sandbox, memory) lose no photo: the
+    ones not done are done in this process, with a line on stderr saying why."""
+    from mvcalib import _photos
+
+    assert list(_photos._in_workers(_dies_in_a_worker, [1, 2, 3], 2)) == [2, 4, 6]
+    assert "worker processes stopped after 0 of 3 photos" in capsys.readouterr().err
+
+
 def test_cli_observes_a_marked_grid_and_calibrates_the_rig(tmp_path):
     """`mvcalib observe-grid` then `mvcalib calibrate-rig`, on the photos as PNG files."""
     import imageio.v3 as iio
