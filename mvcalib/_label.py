@@ -107,10 +107,15 @@ def _fit(world, pixels, mask, max_relative_rms=None) -> np.ndarray:
     return np.asarray(result.P, dtype=np.float64)
 
 
-def _normalise(points):
-    """Hartley normalisation of `(..., N, d)` point sets: normalised points, scale, centroid."""
-    centroid = points.mean(axis=-2, keepdims=True)
-    rms = np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=-1), axis=-1))[..., None, None]
+def _normalise(points, used=None):
+    """Hartley normalisation of `(..., N, d)` point sets, over the points `used (..., N)` (all by
+    default): normalised points (all of them), scale `(..., 1, 1)`, centroid `(..., 1, d)`. (The
+    NumPy twin of `_dlt._similarity`, for the host.)"""
+    w = (np.ones(points.shape[:-1]) if used is None else np.asarray(used, float))[..., None]
+    count = w.sum(axis=-2, keepdims=True)
+    centroid = (w * points).sum(axis=-2, keepdims=True) / count
+    square = w * np.sum((points - centroid) ** 2, axis=-1, keepdims=True)
+    rms = np.sqrt(square.sum(axis=-2, keepdims=True) / count)
     scale = np.sqrt(points.shape[-1]) / np.maximum(rms, 1e-300)
     return (points - centroid) * scale, scale, centroid
 

@@ -229,13 +229,13 @@ def match_dots(
 
     ```
     """
+    from ._camera import Camera  # (JAX: imported where a camera is used, see `_photos`)
+
     world = np.asarray(target.points, dtype=np.float64)
     blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
     M, B = len(world), len(blobs)
     min_dots = min(10, M) if min_dots is None else int(min_dots)
     K = _intrinsics(focal, principal_point, detection)
-    from ._camera import Camera  # (JAX: imported where a camera is used, see `_photos`)
-
     clicks = None
     if isinstance(seed, Camera):
         if seed.batch_shape:
@@ -363,18 +363,14 @@ def _homographies(src: np.ndarray, dst: np.ndarray, used: np.ndarray) -> np.ndar
     equations' rows, those of unused points zero (rows of zeros leave the right singular
     vectors as they are). One LAPACK call for the batch: `label_grid`'s local fits were a
     Python loop of ~600 SVDs a photo."""
-    w = used[..., None].astype(float)
-    count = w.sum(-2, keepdims=True)
 
-    def normalised(points):
-        centroid = (w * points).sum(-2, keepdims=True) / count
-        rms = np.sqrt((w * (points - centroid) ** 2).sum((-2, -1), keepdims=True) / count)
-        scale = np.sqrt(2.0) / np.maximum(rms, 1e-300)
+    def normalised(points):  # the points, and the similarity that normalised them
+        a, scale, centroid = _label._normalise(points, used)  # noqa: SLF001
         T = np.zeros(points.shape[:-2] + (3, 3))
         T[..., 0, 0] = T[..., 1, 1] = scale[..., 0, 0]
         T[..., :2, 2] = -scale[..., 0, :] * centroid[..., 0, :]
         T[..., 2, 2] = 1.0
-        return (points - centroid) * scale, T
+        return a, T
 
     (a, T1), (b, T2) = normalised(src), normalised(dst)
     (x, y), (u, v) = np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0)
@@ -382,7 +378,7 @@ def _homographies(src: np.ndarray, dst: np.ndarray, used: np.ndarray) -> np.ndar
     rows = np.stack(
         [np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], -1),
          np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], -1)], -2
-    ) * w[..., None]  # fmt: skip
+    ) * used[..., None, None]  # fmt: skip
     rows = rows.reshape(len(rows), -1, 9)
     # (the least right singular vector; with 4 points, 8 rows, only the full V holds it)
     h = np.linalg.svd(rows, full_matrices=rows.shape[1] < 9)[2][:, -1].reshape(-1, 3, 3)
