@@ -176,15 +176,8 @@ def main(argv=None):
         rms = "-" if r["rms_px_right_views"] is None else f"{r['rms_px_right_views']:.3f}"
         print(f"{r['sweep']:8} {r['labeller']:8} {r['ms_per_photo_median']:9.1f} {r['right']:6d} "
               f"{r['flagged']:8d} {r['wrong']:6d} {rms:>7}")  # fmt: skip
-    ratio = {
-        sweep: next(r for r in results if r["sweep"] == sweep and r["labeller"] == "OpenCV")[
-            "ms_per_photo_median"
-        ]
-        / next(r for r in results if r["sweep"] == sweep and r["labeller"] == "mvcalib")[
-            "ms_per_photo_median"
-        ]
-        for sweep in sweeps
-    }
+    ms = {(r["sweep"], r["labeller"]): r["ms_per_photo_median"] for r in results}
+    ratio = {sweep: ms[sweep, "OpenCV"] / ms[sweep, "mvcalib"] for sweep in sweeps}
     print(f"\nOpenCV's time over mvcalib's: {', '.join(f'{k} {v:.2f}x' for k, v in ratio.items())}")
 
     recording = [[image for image, _, _ in sweeps["clutter"]]]
