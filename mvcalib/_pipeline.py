@@ -134,7 +134,9 @@ def calibrate(
     # rigs of other sizes reuse the compiled program; checked and padded in NumPy. (A rig of a
     # bucket's shape, or inside the caller's trace, goes as it is.)
     bucketed = _buckets.pads(world, pixels, mask)
-    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if bucketed else jnp)
+    # (checked in NumPy when padded, or when they are NumPy arrays already: compiling nothing)
+    host = bucketed or all(isinstance(x, np.ndarray) for x in (world, pixels, mask))
+    world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if host else jnp)
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
     max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
     options = None if refine is False else ({} if refine is True else dict(refine))
@@ -148,26 +150,31 @@ def calibrate(
         # all against 5,602 and the largest focal-length error 4.8 % against 7.8 % (the same
         # rig without the wild points: 4.3 %)
         settings["robust"] = True
-    if not bucketed:
-        quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
-        result = _calibrate(world, pixels, mask, quick=quick, **settings)
-        if options is not None:
-            result = _refined(result, world, pixels, mask, options, max_relative_rms, quick)
-    else:
+    if bucketed:
         n_points = pixels.shape[-2]
         (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
-        quick = _dlt.compact(*mask.shape)
-        if options is not None:  # the refinement compiles on a second thread meanwhile
-            seed = placeholder(pixels.shape[:-2], pixels.dtype, fill=np.nan)
-            refined = _buckets.ahead(_refine_padded, seed, world, pixels, mask, options)
-        result = _calibrate(world, pixels, mask, quick=quick, **settings)
-        if options is not None:
-            if refined is not None:  # and the check of its cameras
-                check = (world, pixels, mask, max_relative_rms)
-                _buckets.ahead(_checked, result, refined, *check, quick=quick)
-            result = _refined_bucket(
-                result, world, pixels, mask, options, max_relative_rms, math.prod(batch), quick
-            )
+    # A call from Python of a rig with one camera axis (padded or of its bucket's shape) compiles
+    # the refinement on a second thread while the DLT is traced and compiled; the same programs
+    # run in the caller's trace, one after the other.
+    ahead = options is not None and (
+        bucketed or (mask.ndim == 2 and _buckets.applies(world, pixels, mask))
+    )
+    quick = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
+    if ahead:
+        seed = placeholder(pixels.shape[:-2], pixels.dtype, fill=np.nan)
+        refined = _buckets.ahead(_refine_padded, seed, world, pixels, mask, options)
+    result = _calibrate(world, pixels, mask, quick=quick, **settings)
+    if ahead:
+        if refined is not None:  # and the check of its cameras
+            check = (world, pixels, mask, max_relative_rms)
+            _buckets.ahead(_checked, result, refined, *check, quick=quick)
+        n_cameras = math.prod(batch) if bucketed else mask.shape[0]
+        result = _refined_bucket(
+            result, world, pixels, mask, options, max_relative_rms, n_cameras, quick
+        )
+    elif options is not None:
+        result = _refined(result, world, pixels, mask, options, max_relative_rms, quick)
+    if bucketed:
         result = _buckets.cut(result, batch)
         result = _buckets.cut_points(result, _point_arrays, n_points, len(batch))
     if strict and _validate.is_concrete(result.status):
@@ -206,9 +213,10 @@ def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> C
 def _refined_bucket(
     result, world, pixels, mask, options, max_relative_rms, n_cameras, quick
 ) -> Calibration:
-    """`_refined` of a rig padded to its bucket, as the same compiled programs that `calibrate`
-    and `refine` called one after the other run: the same cameras to the last bit. The seed is
-    made in NumPy, the padding's cameras NaN (their problems end at once)."""
+    """`_refined` of a rig of its bucket's shape (padded or not) called from Python, as the same
+    compiled programs that `calibrate` and `refine` called one after the other run: the same
+    cameras to the last bit. The seed is made in NumPy, the cameras after the first `n_cameras`
+    (the padding's) NaN: their problems end at once."""
 
     def padding_nan(x):
         x = np.array(x)

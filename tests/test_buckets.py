@@ -128,10 +128,17 @@ def _compiled_on(caplog, name):
     return [r.threadName for r in caplog.records if done in r.getMessage()]
 
 
-def test_refinement_compiles_once_on_a_second_thread(caplog):
+@pytest.mark.parametrize(
+    "cameras, points, to",
+    [(6, 25, np.asarray), (64, 64, np.asarray), (64, 64, jnp.asarray)],
+    ids=["padded", "bucket-shaped-numpy", "bucket-shaped-jax"],
+)
+def test_refinement_compiles_once_on_a_second_thread(caplog, cameras, points, to):
     """`calibrate(..., refine=True)` has XLA compile the refinement while it compiles and runs
-    the DLT: once, on another thread, and the answer is the traced call's."""
-    world, pixels, mask = _rig(3, 6, 25)
+    the DLT: once, on another thread, and the answer is the traced call's. So does a rig already
+    of its bucket's shape, which is not padded (64 cameras of 64 points)."""
+    world, pixels, mask = map(to, _rig(3, cameras, points))
+    assert _buckets.cameras_and_points(cameras, points) == (cameras, points) or cameras == 6
     jax.clear_caches()
     with caplog.at_level(logging.DEBUG), jax.log_compiles():
         result = mc.calibrate(world, pixels, mask, refine=True)
