@@ -24,6 +24,7 @@ import os
 import pathlib
 import re
 import sys
+import tempfile
 
 EXAMPLES = {
     "calibrate": """\
@@ -465,8 +466,8 @@ def _check_usage(parser, args) -> None:
         )
     for flag in ("out", "plot", "save"):
         value = getattr(args, flag, None)
-        if value and not pathlib.Path(value).resolve().parent.is_dir():
-            parser.error(f"the folder of --{flag} does not exist: {pathlib.Path(value).parent}")
+        if value:
+            _check_writable(parser, flag, pathlib.Path(value))
     suffix = pathlib.Path(getattr(args, "out", "") or "").suffix.lower()
     if args.command == "detect" and suffix not in (".csv", ".json"):
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
@@ -502,6 +503,21 @@ def _check_usage(parser, args) -> None:
 
 
 _FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv"}  # `calibrate --out`'s
+
+
+def _check_writable(parser, flag: str, path: pathlib.Path) -> None:
+    """Refuse an output path that cannot be written, before any work: a missing or read-only
+    folder, or a folder where a file should go (a file is written beside it, then renamed)."""
+    folder = path.resolve().parent
+    if not folder.is_dir():
+        parser.error(f"the folder of --{flag} does not exist: {path.parent}")
+    if path.is_dir():
+        parser.error(f"--{flag} {path} is a folder; give a file name")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"cannot write --{flag} {path}: {error.strerror or error}")
 
 
 def _check_format(parser, args, suffix: str) -> None:

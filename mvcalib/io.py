@@ -41,7 +41,10 @@ def write_atomic(path, data: str | bytes) -> pathlib.Path:
     """Write `data` to `path` through a temporary file and a rename: all or nothing."""
     path = pathlib.Path(path)
     mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise OSError(error.errno, f"cannot write {path}: {error.strerror}") from error
     try:
         with os.fdopen(fd, mode) as f:
             # mkstemp makes the file private (0600); give it the permissions a plain open()
@@ -57,8 +60,10 @@ def write_atomic(path, data: str | bytes) -> pathlib.Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as error:
         pathlib.Path(tmp).unlink(missing_ok=True)
+        if isinstance(error, OSError):  # named by the file asked for, not the temporary one
+            raise OSError(error.errno, f"cannot write {path}: {error.strerror}") from error
         raise
     return path
 

@@ -4,6 +4,7 @@ are also run in-process through `cli.main`, which is faster and the same code.""
 
 import csv
 import json
+import os
 import re
 import subprocess
 import sys
@@ -391,8 +392,11 @@ def files(tmp_path, monkeypatch, cache_off):
          "--min-angle must be non-negative"),
         (["detect", "dots.png", "--out", "d.txt"], 2, "must be a .csv or .json"),
         (["detect", "none.png", "--out", "d.csv"], 2, "no such image file: none.png"),
-        (["detect", "dots.png", "--no-label", "--out", "folder.csv", "--quiet"], 1,
-         "Is a directory"),
+        (["detect", "dots.png", "--no-label", "--out", "folder.csv", "--quiet"], 2,
+         "--out folder.csv is a folder; give a file name"),
+        pytest.param(["calibrate", "corr.csv", "--out", "/proc/r.json"], 2,
+                     "cannot write --out /proc/r.json: ",
+                     marks=pytest.mark.skipif(not os.path.isdir("/proc"), reason="no /proc")),
         (["demo", "--noise", "-1"], 2, "noise levels must be non-negative"),
         (["demo", "--noise", "abc"], 2, "invalid float value"),
         (["demo", "--bogus"], 2, "unrecognized arguments: --bogus"),

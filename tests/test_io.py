@@ -163,3 +163,14 @@ def test_written_files_get_the_permissions_a_plain_open_would_give(tmp_path):
         assert old.stat().st_mode & 0o777 == 0o604 and old.read_text() == "after"
     finally:
         os.umask(umask)
+
+
+def test_a_file_that_cannot_be_written_is_named_in_the_error_not_its_temporary(tmp_path):
+    (tmp_path / "folder.json").mkdir()
+    for path, error in (
+        (tmp_path / "no" / "r.json", FileNotFoundError),  # the temporary file cannot be made
+        (tmp_path / "folder.json", IsADirectoryError),  # nor renamed onto a folder
+    ):
+        with pytest.raises(error, match=f"cannot write {path}: "):
+            mc.io.write_atomic(path, "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.json"]  # nothing left behind
