@@ -72,7 +72,8 @@ def compute_report(cameras, world, pixels, mask) -> ReprojectionReport:
     mean = jnp.sum(residuals, axis=-2) / denom[..., None]
     sq = jnp.sum(residuals**2, axis=-1)
     rms = jnp.sqrt(jnp.sum(sq, axis=-1) / denom)
-    largest = jnp.sqrt(jnp.max(sq, axis=-1))
+    # (XLA's max need not carry a NaN through: a camera with NaN parameters gets NaN from its RMS)
+    largest = jnp.where(jnp.isnan(rms), jnp.nan, jnp.sqrt(jnp.max(sq, axis=-1)))
     nan = jnp.where(n > 0, 1.0, jnp.nan).astype(residuals.dtype)
     return ReprojectionReport(
         mean_x=mean[..., 0] * nan,

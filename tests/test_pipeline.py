@@ -43,6 +43,9 @@ def test_bad_cameras_get_a_status_and_the_rest_are_untouched():
         np.testing.assert_allclose(result.P[i], alone.P, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(result.report.rms[i], alone.report.rms, rtol=1e-12)
     assert np.all(np.isnan(np.asarray(result.P)[~np.asarray(result.ok)]))
+    failed = ~np.asarray(result.ok)  # and no error to report: NaN, not a zero largest error
+    for name in ("mean_x", "mean_y", "rms", "max"):
+        assert np.all(np.isnan(np.asarray(getattr(result.report, name))[failed])), name
     assert "degenerate" in result.messages()[1] and "coplanar" in result.messages()[1]
     text = str(result)
     assert "too_few_points" in text and "points_behind" in text
