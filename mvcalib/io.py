@@ -84,6 +84,18 @@ def _array(x, shape):
     return a
 
 
+def _check_cameras(cameras, function: str) -> None:
+    """Refuse anything but a `Camera` (a calibration's result is a common slip), saying what to
+    pass instead."""
+    if isinstance(cameras, Camera):
+        return
+    name = type(cameras).__name__
+    fields = [f for f in ("cameras", "camera") if isinstance(getattr(cameras, f, None), Camera)]
+    field = fields[0] if fields else None
+    hint = f": pass its cameras, `result.{field}`" if field else ""
+    raise TypeError(f"{function} saves an mvcalib.Camera; got {name}{hint}.")
+
+
 def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=None):
     """Save a rig (a `Camera` with a camera axis, or one camera) as versioned JSON, atomically.
 
@@ -109,6 +121,7 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
 
     ```
     """
+    _check_cameras(cameras, "save_json")
     rig = jax.tree_util.tree_map(np.asarray, cameras)  # (in NumPy: no program per index)
     rig = jax.tree_util.tree_map(lambda a: a[None], rig) if rig.batch_shape == () else rig
     if len(rig.batch_shape) != 1:
@@ -292,6 +305,7 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     ```
     """
     lines = ["%YAML:1.0", "---"]
+    _check_cameras(cameras, "save_opencv")
     if cameras.batch_shape == ():
         lines += _opencv_camera(cameras, "", image_size)
     else:
@@ -465,6 +479,7 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
 
     ```
     """
+    _check_cameras(cameras, "save_colmap")
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)

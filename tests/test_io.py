@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -174,3 +175,15 @@ def test_a_file_that_cannot_be_written_is_named_in_the_error_not_its_temporary(t
         with pytest.raises(error, match=f"cannot write {path}: "):
             mc.io.write_atomic(path, "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.json"]  # nothing left behind
+
+
+def test_saving_a_calibration_result_says_to_pass_its_cameras(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(0), 3)
+    result = mc.calibrate(rig.world, rig.pixels)
+    board = mc.synthetic.board_rig(jax.random.key(0), n_cameras=1, n_frames=6)
+    planar = mc.calibrate_planar(board.target, board.pixels[0], board.mask[0], refine=False)
+    for save in (mc.io.save_json, mc.io.save_opencv, lambda p, c: mc.io.save_colmap(p, c, (9, 9))):
+        for wrong, field in ((result, "cameras"), (planar, "camera")):
+            with pytest.raises(TypeError, match=rf"got {type(wrong).__name__}: .*`result.{field}`"):
+                save(tmp_path / "out", wrong)
+    assert not list(tmp_path.iterdir())  # nothing written, no folder made
