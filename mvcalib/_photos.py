@@ -41,6 +41,8 @@ def read_image(path) -> np.ndarray:
         )
     except Exception as error:  # every reader raises its own kind; all mean "not an image"
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if "can not handle the given uri" in reason:  # (imageio's words for an unknown format)
+            reason = "not in a format Pillow reads: PNG, JPEG, BMP, GIF, ..."
         raise ValueError(f"{path}: cannot be read as an image ({reason[:200]})") from None
     image = np.asarray(image)
     if image.size == 0:  # (tifffile warns about a broken file and returns nothing)

@@ -461,6 +461,8 @@ def test_truncated_files_and_files_that_are_not_images_are_flagged(photographs):
         assert "cannot be read as an image" in result.messages[0], result.messages
     for result in results[5:8]:  # PNG, TIFF, JPEG cut in half
         assert "truncated" in result.messages[0] or "failed to read" in result.messages[0]
+    # a text file named .png: said in our words, not imageio's ("can not handle the given uri")
+    assert "not in a format Pillow reads" in results[8].messages[0], results[8].messages
 
 
 # ---------------------------------------------------------------------------- calibration files
