@@ -187,7 +187,8 @@ class RigCalibration(eqx.Module):
         lines = [
             f"rig of {len(status)} cameras, {self.frame_rms.shape[0]} frames: RMS "
             f"{float(self.rms):.3f} px, {_RESULT_MESSAGES[int(self.result)]} after "
-            f"{int(self.iterations)} steps; {int(self.n_skipped)} (camera, frame) pairs skipped",
+            f"{int(self.iterations)} steps; {int(self.n_skipped)} (camera, frame) pairs skipped "
+            "(too few points)",
             "camera  frames  points  rms (px)  centre std  status",
         ]
         for c in range(len(status)):
@@ -197,7 +198,10 @@ class RigCalibration(eqx.Module):
             )
         gauge = np.flatnonzero((status == Status.OK) & np.all(pos == 0, -1))
         if len(gauge) == 1:  # (the solve's reference: the others' errors are relative to it)
-            lines.append(f"centre std: relative to camera {gauge[0]}, the solve's reference")
+            lines.append(
+                f"centre std: relative to camera {gauge[0]}'s centre (the solve's reference "
+                "camera, whatever the world frame)"
+            )
         return "\n".join(lines)
 
 

@@ -101,6 +101,7 @@ files:
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
 _DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4")  # a pinhole's and a fisheye's (k1..k4)
+FAR_PX = 10.0  # `triangulate`: ok points reprojecting worse than this are pointed out
 
 
 class _Parser(argparse.ArgumentParser):
@@ -232,7 +233,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="fisheye cameras (cv2.fisheye's model): with no --intrinsics, each camera starts "
         "from its own frames of a planar target; needs --image-size",
     )
-    rig.add_argument("--image-size", **size, help="the photos' size (with --fisheye)")
+    rig.add_argument(
+        "--image-size",
+        **size,
+        help="the photos' size: the image borders of --plot (default: guessed from the principal "
+        "points and pixels), and needed with --fisheye",
+    )
     rig.add_argument(
         "--reference",
         default="0",
@@ -855,6 +861,7 @@ def _calibrate_rig(args) -> int:
             obs.pixels[:, posed].reshape(C, -1, 2),
             mask.reshape(C, -1),
             names=obs.cameras,
+            image_size=args.image_size,
             title=f"{_count(C, 'camera')}, {_count(int(posed.sum()), 'frame')}, "
             f"{_count(int(mask.sum()), 'observation')}, RMS "
             f"{float(result.rms_observed):.3g} px",
@@ -1059,6 +1066,13 @@ def _triangulate(args) -> int:
         print(
             f"reprojection RMS per point: median {np.median(rms[made]):.4f} px, max "
             f"{rms[made].max():.4f} px"
+        )
+    far = ok & (rms > FAR_PX)
+    if far.any():  # (`ok` is geometric: in front, rays apart; it does not judge the fit)
+        print(
+            f"note: {_count(int(far.sum()), 'ok point')} reproject worse than {FAR_PX:g} px "
+            f"(the worst {rms[far].max():.3g} px): check that the tracks' cameras are the rig's "
+            "and that the rig is calibrated; the rms_px column says which"
         )
     if made.any() and not ok.any():
         R, t = np.asarray(cameras.R), np.asarray(cameras.t)

@@ -419,6 +419,19 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
         assert err.rstrip().endswith(f"(see `{command} --help`)"), err
 
 
+def test_triangulate_points_out_ok_points_that_fit_badly(files, capsys):
+    world = mc.targets.box_corner().points
+    tracks = mc.io.load_correspondences("tracks.csv")
+    pixels = np.array(tracks.pixels)
+    assert cli.main(["triangulate", "rig.json", "tracks.csv", "--out", "p.csv"]) == 0
+    assert "note:" not in capsys.readouterr().out  # a rig and tracks that fit: no note
+    pixels[1, :3] += 40.0  # three points that camera b sees 40 px off: in front, badly fit
+    mc.io.save_correspondences("off.csv", None, pixels, cameras=["a", "b"])
+    assert cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv"]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(world)} ok" in out and "note: 3 ok points reproject worse than 10 px" in out
+
+
 def test_calibrate_writes_the_format_its_out_file_names(files, capsys):
     """Without --format, `calibrate` writes what --out's suffix says: .yml is OpenCV's YAML."""
     assert cli.main(["calibrate", "corr.csv", "--out", "r.yml", "--quiet"]) == 0

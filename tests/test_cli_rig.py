@@ -40,11 +40,18 @@ def _main(*args) -> int:
 
 
 # ---------------------------------------------------------------------------- synthetic rig
-def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off):
+def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off, monkeypatch):
     rig, observations = _observations(40)
     path = mc.io.save_observations(tmp_path / "obs.csv", observations)
     out, figure = tmp_path / "rig.json", tmp_path / "rig.png"
-    assert _main("calibrate-rig", path, "--out", out, "--plot", figure) == 0
+    drawn = []  # the figure's image borders: the photos' size given
+    report_figure = mc.plot.report_figure
+    monkeypatch.setattr(
+        mc.plot, "report_figure", lambda *a, **k: drawn.append(k) or report_figure(*a, **k)
+    )
+    size = ("--image-size", 1280, 800)
+    assert _main("calibrate-rig", path, "--out", out, "--plot", figure, *size) == 0
+    assert [list(k["image_size"]) for k in drawn] == [[1280, 800]]
     stdout, stderr = capsys.readouterr()
     assert f"read 4 cameras, 40 frames, 108 target points, {observations.mask.sum()} " in stderr
     assert "calibrate_rig: RMS" in stderr  # the library's stage timings, as progress
