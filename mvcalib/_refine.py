@@ -898,7 +898,10 @@ def refine(
     - `distortion`: which of the lens's coefficients to estimate (`"distortion"` for all); the
       others keep the seed's values (zeros for a DLT seed); `()` for none. By default OpenCV's
       choice: `("k1", "k2", "p1", "p2")` of a pinhole's `(k1, k2, p1, p2, k3)`, all four
-      `(k1, k2, k3, k4)` of a fisheye's.
+      `(k1, k2, k3, k4)` of a fisheye's. Estimate only those the lens needs: from a few points
+      each one adds variance (the 19 dots of the box corner seen by a lens without distortion:
+      focal lengths 0.42 % off with `()`, 0.73 % with the default, median of 200 cameras), and
+      the fitted distortion holds only where the points are.
     - `fix`: parameters held at the seed's values: names from `PARAMETERS`, or the groups
       `"focal"`, `"principal_point"`, `"intrinsics"`, `"rotation"`, `"translation"`, `"pose"`.
     - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew

@@ -185,7 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--distortion",
         type=_distortion,
         metavar="LIST",
-        help="the distortion coefficients to refine, e.g. k1,k2 or none (implies --refine)",
+        help="the distortion coefficients to refine, e.g. k1,k2 or none (implies --refine). "
+        "Fit only those the lens needs: from a few points each one adds variance (19 dots of "
+        "a lens without distortion: focal lengths 0.42 %% off with none, 0.73 %% with k1,k2,p1,p2, "
+        "median of 200 cameras)",
     )
     calibrate.add_argument("--image-size", **size, help="written to OpenCV and COLMAP files")
 
