@@ -44,7 +44,7 @@ def write_atomic(path, data: str | bytes) -> pathlib.Path:
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as error:
-        raise OSError(error.errno, f"cannot write {path}: {error.strerror}") from error
+        raise _cannot_write(path, error) from error
     try:
         with os.fdopen(fd, mode) as f:
             # mkstemp makes the file private (0600); give it the permissions a plain open()
@@ -63,9 +63,16 @@ def write_atomic(path, data: str | bytes) -> pathlib.Path:
     except BaseException as error:
         pathlib.Path(tmp).unlink(missing_ok=True)
         if isinstance(error, OSError):  # named by the file asked for, not the temporary one
-            raise OSError(error.errno, f"cannot write {path}: {error.strerror}") from error
+            raise _cannot_write(path, error) from error
         raise
     return path
+
+
+def _cannot_write(path, error: OSError) -> OSError:
+    """`error` saying which file could not be written (of the same class: the same errno)."""
+    if error.errno is None:
+        return OSError(f"cannot write {path}: {error}")
+    return OSError(error.errno, f"cannot write {path}: {error.strerror}")
 
 
 def _plain(x):
