@@ -259,6 +259,20 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
                 getattr(self.__dict__[build], "clear_cache", lambda: None)()
 
 
+def eager(fun):
+    """`fun` as one program compiled quickly (`jit`) where it is called with concrete arrays
+    from Python, and as it is where it is traced (inlined into the caller's program): for the
+    small array functions a user calls eagerly (`Camera.K`, `procrustes`, ...), where `jnp`
+    would compile a program per operation and shape."""
+    compiled = jit(fun)
+
+    @functools.wraps(fun)
+    def call(*args):
+        return compiled(*args, quick=True) if applies(*args) else fun(*args)
+
+    return call
+
+
 def _signature(*tree):
     """What tells compiled programs apart, roughly: the tree's structure, its arrays' shapes and
     types, its other leaves (hashable or not: by identity). Equal signatures can still need two

@@ -40,6 +40,28 @@ def lens_of(dist) -> str:
     return "fisheye" if dist.shape[-1] == len(LENSES["fisheye"]) else "pinhole"
 
 
+# Camera's derived arrays, each one compiled program where called eagerly (`_buckets.eager`)
+@_buckets.eager
+def _intrinsic_matrix(alpha_u, alpha_v, u0, v0, skew):
+    zero, one = jnp.zeros_like(u0), jnp.ones_like(u0)
+    rows = [
+        jnp.stack([alpha_u, skew, u0], -1),
+        jnp.stack([zero, alpha_v, v0], -1),
+        jnp.stack([zero, zero, one], -1),
+    ]
+    return jnp.stack(rows, -2)
+
+
+@_buckets.eager
+def _center(R, t):
+    return -jnp.einsum("...ji,...j->...i", R, t)
+
+
+@_buckets.eager
+def _projection_matrix(K, R, t):
+    return K @ jnp.concatenate([R, t[..., None]], axis=-1)
+
+
 class Camera(eqx.Module):
     """A camera; a rig is one `Camera` whose fields carry a leading camera axis.
 
@@ -146,27 +168,30 @@ class Camera(eqx.Module):
         """Select cameras of a rig: `rig[0]`, `rig[1:3]`, `rig[ok]`."""
         if not self.batch_shape:
             raise TypeError("a single Camera cannot be indexed; a rig has a leading camera axis.")
-        return jax.tree_util.tree_map(lambda x: x[index], self)
+        if not _buckets.applies(self, index):  # traced, or split over devices: as JAX does
+            return jax.tree_util.tree_map(lambda x: x[index], self)
+        # concrete: indexed in NumPy (an eager slice compiles a program per shape and leaf)
+        if isinstance(index, jax.Array):
+            index = np.asarray(index)
+
+        def take(x):
+            return x[index] if isinstance(x, np.ndarray) else jax.device_put(np.asarray(x)[index])
+
+        return jax.tree_util.tree_map(take, self)
 
     @property
     def K(self) -> Float[Array, "*batch 3 3"]:
         """The intrinsic matrix `[[alpha_u, skew, u0], [0, alpha_v, v0], [0, 0, 1]]`."""
-        zero, one = jnp.zeros_like(self.u0), jnp.ones_like(self.u0)
-        rows = [
-            jnp.stack([self.alpha_u, self.skew, self.u0], -1),
-            jnp.stack([zero, self.alpha_v, self.v0], -1),
-            jnp.stack([zero, zero, one], -1),
-        ]
-        return jnp.stack(rows, -2)
+        return _intrinsic_matrix(self.alpha_u, self.alpha_v, self.u0, self.v0, self.skew)
 
     @property
     def center(self) -> Float[Array, "*batch 3"]:
         """The optical centre in world coordinates, `-R^T t`."""
-        return -jnp.einsum("...ji,...j->...i", self.R, self.t)
+        return _center(self.R, self.t)
 
     def projection_matrix(self) -> Float[Array, "*batch 3 4"]:
         """`P = K [R | t]` (distortion is not part of `P`)."""
-        return self.K @ jnp.concatenate([self.R, self.t[..., None]], axis=-1)
+        return _projection_matrix(self.K, self.R, self.t)
 
     def _camera_coordinates(self, world):
         """`R X + t` as three arrays `(*batch, N)`, one per coordinate: entry by entry rather than

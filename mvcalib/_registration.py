@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from . import _validate
+from . import _buckets, _validate
 from ._camera import Camera
 from ._rotation import nearest_rotation
 
@@ -45,23 +45,43 @@ class RigidTransform(eqx.Module):
 
     def apply(self, points: Float[Array, "*batch N 3"]) -> Float[Array, "*batch N 3"]:
         """`R X + t` for points `(..., N, 3)`."""
-        return jnp.asarray(points) @ jnp.swapaxes(self.R, -1, -2) + self.t[..., None, :]
+        points = points if isinstance(points, (np.ndarray, jax.Array)) else np.asarray(points)
+        return _apply(self.R, self.t, points)
 
     def inverse(self) -> RigidTransform:
         """`X = R^T (Y - t)`; assumes `R` is a rotation (as everything `procrustes` returns)."""
-        Rt = jnp.swapaxes(self.R, -1, -2)
-        return RigidTransform(Rt, -jnp.einsum("...ij,...j->...i", Rt, self.t))
+        return RigidTransform(*_inverse(self.R, self.t))
 
     def __matmul__(self, other: RigidTransform) -> RigidTransform:
-        return RigidTransform(
-            self.R @ other.R, jnp.einsum("...ij,...j->...i", self.R, other.t) + self.t
-        )
+        return RigidTransform(*_compose(self.R, self.t, other.R, other.t))
 
     def as_matrix(self) -> Float[Array, "*batch 4 4"]:
         """The 4 x 4 homogeneous matrix."""
-        top = jnp.concatenate([self.R, self.t[..., None]], axis=-1)
-        bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], self.R.dtype), (*top.shape[:-2], 1, 4))
-        return jnp.concatenate([top, bottom], axis=-2)
+        return _as_matrix(self.R, self.t)
+
+
+# RigidTransform's arithmetic, each one compiled program where called eagerly (`_buckets.eager`)
+@_buckets.eager
+def _apply(R, t, points):
+    return points @ jnp.swapaxes(R, -1, -2) + t[..., None, :]
+
+
+@_buckets.eager
+def _inverse(R, t):
+    Rt = jnp.swapaxes(R, -1, -2)
+    return Rt, -jnp.einsum("...ij,...j->...i", Rt, t)
+
+
+@_buckets.eager
+def _compose(R1, t1, R2, t2):
+    return R1 @ R2, jnp.einsum("...ij,...j->...i", R1, t2) + t1
+
+
+@_buckets.eager
+def _as_matrix(R, t):
+    top = jnp.concatenate([R, t[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], R.dtype), (*top.shape[:-2], 1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
 
 
 def _procrustes_kernel(src, dst, w):
@@ -117,8 +137,11 @@ def procrustes(
 
     ```
     """
-    src = _validate.floating("src", src, (None, 3))
-    dst = _validate.floating("dst", dst, (None, 3))
+    # concrete arrays are checked in NumPy, and the fit is one compiled program (eager `jnp`
+    # operations would compile a program each)
+    xp = np if _validate.is_concrete(src, dst, weights) else jnp
+    src = _validate.floating("src", src, (None, 3), xp=xp)
+    dst = _validate.floating("dst", dst, (None, 3), xp=xp)
     if src.shape[-2] != dst.shape[-2]:
         raise ValueError(
             f"`src` and `dst` must hold the same points; got shapes {tuple(src.shape)} and "
@@ -127,17 +150,16 @@ def procrustes(
     _validate.at_least("src", src, 3, "points (not collinear) to fix a rotation")
     dtype = _validate.result_dtype(src.dtype, dst.dtype)
     if weights is None:
-        weights = jnp.ones(src.shape[-2], dtype)
-    weights = _validate.floating("weights", weights).astype(dtype)
-    if _validate.is_concrete(src, dst, weights):
+        weights = xp.ones(src.shape[-2], dtype)
+    weights = _validate.floating("weights", weights, xp=xp).astype(dtype)
+    if xp is np:
         for name, x in (("src", src), ("dst", dst), ("weights", weights)):
-            if not bool(jnp.all(jnp.isfinite(x))):
+            if not np.all(np.isfinite(x)):
                 raise ValueError(f"`{name}` contains NaN or inf.")
-        if bool(jnp.any(weights < 0)):
+        if np.any(weights < 0):
             raise ValueError("`weights` must be non-negative.")
-    kernel = jnp.vectorize(_procrustes_kernel, signature="(n,3),(n,3),(n)->(3,3),(3),()")
-    R, t, determined = kernel(src.astype(dtype), dst.astype(dtype), weights)
-    if _validate.is_concrete(determined) and not bool(jnp.all(determined)):
+    R, t, determined = _procrustes(src.astype(dtype), dst.astype(dtype), weights)
+    if _validate.is_concrete(determined) and not np.all(np.asarray(determined)):
         where = np.argwhere(~np.asarray(determined))
         at = f" (at batch index {tuple(int(i) for i in where[0])})" if where.shape[1] else ""
         raise ValueError(
@@ -146,6 +168,13 @@ def procrustes(
             "points are needed."
         )
     return RigidTransform(R, t)
+
+
+@_buckets.eager
+def _procrustes(src, dst, weights):
+    """`_procrustes_kernel` over the leading axes, which broadcast."""
+    kernel = jnp.vectorize(_procrustes_kernel, signature="(n,3),(n,3),(n)->(3,3),(3),()")
+    return kernel(src, dst, weights)
 
 
 def _paper_kernel(src, dst):
@@ -204,6 +233,11 @@ def to_global(cameras: Camera, transform: RigidTransform) -> Camera:
 
     ```
     """
+    return _to_global(cameras, transform)
+
+
+@_buckets.eager
+def _to_global(cameras: Camera, transform: RigidTransform) -> Camera:
     inv = transform.inverse()
     R = cameras.R @ inv.R
     t = jnp.einsum("...ij,...j->...i", cameras.R, inv.t) + cameras.t

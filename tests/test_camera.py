@@ -121,6 +121,39 @@ def test_rig_indexing_and_shapes():
         len(cams[0])
 
 
+def test_a_concrete_rig_is_indexed_and_its_arrays_derived_with_one_program_each(caplog):
+    """`rig[i]` of concrete arrays compiles nothing (NumPy indexing), `K`, `center` and
+    `projection_matrix` one program each (not one per `jnp` operation), `procrustes` and
+    `to_global` too; all as JAX's own indexing and the traced code give them."""
+    import logging
+
+    rig = mc.synthetic.random_rig(jax.random.key(5), n_cameras=7).cameras
+    keep = np.array([True, False, True, True, False, False, True])
+    indices = (0, -1, slice(1, 4), keep, jnp.asarray(keep), np.array([6, 0]))
+    T = mc.RigidTransform(mc.rodrigues(jnp.array([0.1, -0.2, 0.3])), jnp.array([1.0, 2.0, 3.0]))
+    src = np.random.default_rng(1).uniform(size=(11, 3))
+    jax.clear_caches()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        picked = [rig[i] for i in indices]
+        derived = [rig.K, rig.center, rig.projection_matrix()]
+        moved = mc.to_global(rig, T)
+        fitted = mc.procrustes(src, np.asarray(T.apply(src)))
+    compiled = [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()]
+    names = ("_intrinsic_matrix", "_center", "_projection_matrix", "_to_global", "_apply",
+             "_procrustes")  # fmt: skip
+    assert len(compiled) == len(names) and all(
+        any(f"jit({name})" in c for c in compiled) for name in names
+    ), compiled
+    for i, camera in zip(indices, picked):
+        by_jax = jax.tree_util.tree_map(lambda x: x[i], rig)  # noqa: B023
+        jax.tree_util.tree_map(np.testing.assert_array_equal, camera, by_jax)
+    traced = jax.jit(lambda c: (c.K, c.center, c.projection_matrix()))(rig)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, tuple(derived), traced)
+    np.testing.assert_array_equal(moved.R, jax.jit(mc.to_global)(rig, T).R)
+    np.testing.assert_allclose(fitted.R, T.R, atol=1e-12)
+    np.testing.assert_allclose(fitted.t, T.t, atol=1e-12)
+
+
 def test_camera_is_a_pytree_for_jit_and_vmap():
     rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3)
     projected = jax.vmap(lambda c: c.project(rig.world))(rig.cameras)
