@@ -76,7 +76,25 @@ class Calibration(eqx.Module):
         if not _validate.is_concrete(self.status):
             return repr(self)
         names = [Status(int(s)).name.lower() for s in np.asarray(self.status).reshape(-1)]
-        return format_table(self.report, status=names)
+        return "\n".join(filter(None, [format_table(self.report, status=names),
+                                        mirror_note(self)]))  # fmt: skip
+
+
+def mirror_note(result: Calibration, names=None) -> str:
+    """A line naming the calibrated cameras that see a mirror image of the world (`mirrored`),
+    which is legitimate (a left-handed world frame) but is also what pixels given as (y, x)
+    look like; "" where there are none."""
+    mirrored = np.asarray(result.mirrored).reshape(-1) & np.asarray(result.ok).reshape(-1)
+    if not mirrored.any():
+        return ""
+    names = [str(n) for n in (range(len(mirrored)) if names is None else names)]
+    which = ", ".join(names[i] for i in np.flatnonzero(mirrored))
+    cameras = f"cameras {which} see" if mirrored.sum() > 1 else f"camera {which} sees"
+    return (
+        f"mirrored: {cameras} a mirror image of the world (a left-handed world frame, or "
+        "pixels given as (y, x) or with y up): they project correctly, with the points at "
+        "negative depth; if that is not intended, check the axes."
+    )
 
 
 def calibrate(

@@ -684,7 +684,7 @@ def _calibrate(args) -> int:
     import numpy as np
 
     from . import io
-    from ._pipeline import calibrate
+    from ._pipeline import calibrate, mirror_note
     from ._report import format_table
     from ._status import Status
 
@@ -712,6 +712,8 @@ def _calibrate(args) -> int:
     ok = status == Status.OK
     words = [Status(int(s)).name.lower() for s in status]
     print(format_table(result.report, status=words, names=data.cameras))
+    if note := mirror_note(result, data.cameras):
+        print(note)
     out = pathlib.Path(args.out)
     if args.format == "json":
         meta = {"correspondences": str(args.correspondences), "refined": refine is not False}

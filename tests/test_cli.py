@@ -134,6 +134,8 @@ def test_calibrate_fits_each_view_as_well_as_the_published_cameras(house):
     assert result.returncode == 0, result.stderr
     assert "10 of 10 cameras calibrated; 10 cameras written" in result.stdout
     assert "read 10 cameras, 672 points, 2846 observations" in result.stderr  # progress
+    # VGG's world frame is left-handed: every camera is named as seeing it mirrored
+    assert f"mirrored: cameras {', '.join(house['names'])} see a mirror image" in result.stdout
     table = _table(result.stdout)
     assert list(table) == house["names"]
     assert "image_width: 768" in house["rig"].read_text()

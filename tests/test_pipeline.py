@@ -49,6 +49,8 @@ def test_bad_cameras_get_a_status_and_the_rest_are_untouched():
     assert "degenerate" in result.messages()[1] and "coplanar" in result.messages()[1]
     text = str(result)
     assert "too_few_points" in text and "points_behind" in text
+    # the mirrored camera is named below the table (pixels given as (y, x) look the same)
+    assert "mirrored: camera 4 sees a mirror image of the world" in text
 
 
 def test_strict_and_raise_if_failed_name_the_failed_cameras():
