@@ -124,6 +124,17 @@ class Camera(eqx.Module):
         names = LENSES[lens]
         alpha_u, alpha_v, u0, v0 = (jnp.asarray(a) for a in (alpha_u, alpha_v, u0, v0))
         R, t = jnp.asarray(R), jnp.asarray(t)
+        if R.shape[-2:] != (3, 3):
+            hint = (
+                ": a rotation vector? `mc.rodrigues` makes the matrix"
+                if R.shape[-1:] == (3,)
+                else ""
+            )
+            raise ValueError(f"`R` holds 3 x 3 rotation matrices, shape (..., 3, 3); got "
+                             f"{tuple(R.shape)}{hint}.")  # fmt: skip
+        if t.shape[-1:] != (3,):
+            hint = ": OpenCV's (3, 1) tvec? pass `t.reshape(-1)`" if t.shape[-2:] == (3, 1) else ""
+            raise ValueError(f"`t` holds translations, shape (..., 3); got {tuple(t.shape)}{hint}.")
         batch = jnp.broadcast_shapes(
             alpha_u.shape, alpha_v.shape, u0.shape, v0.shape, R.shape[:-2], t.shape[:-1]
         )

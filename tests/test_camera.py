@@ -154,6 +154,15 @@ def test_a_concrete_rig_is_indexed_and_its_arrays_derived_with_one_program_each(
     np.testing.assert_allclose(fitted.t, T.t, atol=1e-12)
 
 
+def test_opencv_shaped_rotation_and_translation_are_refused_not_broadcast():
+    """OpenCV's (3, 1) tvec made a rig of three cameras with t = (1, 1, 1), (2, 2, 2), ..."""
+    with pytest.raises(ValueError, match=r"got \(3, 1\): OpenCV's \(3, 1\) tvec"):
+        mc.Camera(1000.0, 1000.0, 500.0, 500.0, np.eye(3), np.array([[1.0], [2.0], [3.0]]))
+    with pytest.raises(ValueError, match=r"got \(3,\): a rotation vector\? `mc.rodrigues`"):
+        mc.Camera(1000.0, 1000.0, 500.0, 500.0, np.array([0.1, 0.2, 0.3]), np.zeros(3))
+    assert mc.Camera(1000.0, 1000.0, 500.0, 500.0, np.eye(3), np.zeros(3)).batch_shape == ()
+
+
 def test_camera_is_a_pytree_for_jit_and_vmap():
     rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3)
     projected = jax.vmap(lambda c: c.project(rig.world))(rig.cameras)
