@@ -117,11 +117,14 @@ def _as_grey(image) -> np.ndarray:
 
 
 def _unit_range(array: np.ndarray) -> np.ndarray:
-    if array.dtype.kind == "u":
+    if array.dtype in (np.uint8, np.uint16):  # a photo's own range: black 0, white 255 or 65535
         return array.astype(np.float64) / np.iinfo(array.dtype).max
-    if array.dtype.kind == "i":
-        info = np.iinfo(array.dtype)
-        return (array.astype(np.float64) - info.min) / (float(info.max) - info.min)
+    if array.dtype.kind in "ui":
+        # Other integers are mostly 8- or 16-bit photos in a wider array (Pillow reads 16-bit
+        # PNGs as int32): the range of 8 or 16 bits that holds the values, else their own.
+        lo, hi = int(array.min()), int(array.max())
+        if lo >= 0 and hi <= 65535:
+            return array.astype(np.float64) / (255.0 if hi <= 255 else 65535.0)
     array = array.astype(np.float64)
     if not np.isfinite(array).all():
         raise ValueError("`image` has NaN or infinite values; mask or fill them first.")
@@ -263,8 +266,9 @@ def detect_dots(
        3 px rim moved the plain centroid of a 2-3 px dot by 0.13 px RMS; this window: 0.05).
 
     Colour images are converted to grey by luminance (skimage's `rgb2gray`; alpha is ignored).
-    Integer images are scaled by their dtype's range; float images are taken as [0, 1], and any
-    other range is rescaled to it.
+    uint8 and uint16 images are scaled by their dtype's range; other integer images (a 16-bit
+    PNG read by Pillow is int32) by 8 or 16 bits, whichever holds their values, else by their
+    own range; float images are taken as [0, 1], and any other range is rescaled to it.
 
     **Arguments:**
 

@@ -228,6 +228,10 @@ def test_colour_uint16_and_float_images_give_the_same_dots():
         "rgba": np.concatenate([rgb, np.full_like(image, 255)[..., None]], axis=-1),
         "uint16": image.astype(np.uint16) * 257,
         "float": image / 255.0,
+        # 8- and 16-bit grey levels in wider integer arrays (Pillow reads 16-bit PNGs as int32)
+        "int64": image.astype(np.int64),
+        "int32 of 16 bits": image.astype(np.int32) * 257,
+        "uint32": image.astype(np.uint32),
     }  # fmt: skip
     for name, variant in variants.items():
         np.testing.assert_allclose(
