@@ -443,6 +443,11 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     from .io import Observations
 
     points = np.asarray(grid.points, float)
+    if any(isinstance(camera, (str, os.PathLike, np.ndarray)) for camera in photos):
+        raise ValueError(
+            "`photos` holds a list of photos per camera, `photos[c][f]`; got a photo where a "
+            "camera's list should be. For one camera, pass `[photos]`."
+        )
     photos = [list(camera) for camera in photos]
     C, F = len(photos), max((len(camera) for camera in photos), default=0)
     if C == 0 or F == 0 or any(len(camera) != F for camera in photos):

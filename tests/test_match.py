@@ -393,6 +393,8 @@ def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
     assert focal.max() < 2e-4
     with pytest.raises(ValueError, match="as many for every camera"):
         mc.observe_grid([photos[0], photos[1][:3]], grid)
+    with pytest.raises(ValueError, match=r"got a photo where a camera's list should be"):
+        mc.observe_grid(photos[0], grid)  # one camera's photos, not a list of cameras' lists
     with pytest.raises(ValueError, match="not a grid of dots"):
         mc.observe_grid(photos, mc.targets.box_corner())
 
