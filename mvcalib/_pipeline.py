@@ -157,6 +157,18 @@ def calibrate(
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if host else jnp)
     rcond = _dlt.default_rcond(world.dtype) if rcond is None else float(rcond)
     max_relative_rms = _dlt.check_relative_rms(max_relative_rms)
+    if not isinstance(refine, (bool, dict)):
+        traced = isinstance(refine, jax.core.Tracer)
+        raise TypeError(
+            "`refine` is True, False or a dict of `mvcalib.refine`'s options, e.g. "
+            f"dict(distortion=('k1',)); got {'a traced value' if traced else repr(refine)}"
+            + (
+                ": inside jax.jit, make it static, jax.jit(functools.partial(mc.calibrate, "
+                "refine=True))."
+                if traced
+                else "."
+            )
+        )
     options = None if refine is False else ({} if refine is True else dict(refine))
     # (with refinement, the fit's check waits for the refined cameras)
     settings = dict(

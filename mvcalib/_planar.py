@@ -37,6 +37,7 @@ from ._refine import (
     _free_parameters,
     _robust_model,
     _robust_residuals,
+    check_loss,
     default_solver,
     parameter_names,
     takes_model,
@@ -853,6 +854,7 @@ def calibrate_planar(
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
     free_shared, free_pose = _free_masks(distortion, fix, skew, dtype, lens)  # checks the names
+    check_loss(loss)
     skew = np.asarray(bool(skew))
     V = pixels.shape[0]
     if xp is np:  # another number of views reuses its bucket's programs: padded views are unseen

@@ -71,6 +71,15 @@ class Cauchy(eqx.Module):
         return c2 * jnp.log1p(s / c2)
 
 
+def check_loss(loss) -> None:
+    """Refuse a `loss` that is not None, `Huber` or `Cauchy`, saying what is."""
+    if loss is not None and not isinstance(loss, (Huber, Cauchy)):
+        raise TypeError(
+            "`loss` is None (least squares), `mc.Huber(scale)` or `mc.Cauchy(scale)`, scale in "
+            f"pixels; got {loss!r}."
+        )
+
+
 def _robust_weights(loss, s):
     """sqrt(rho(s) / s), so that a point's weighted residual has squared length rho(s)."""
     if loss is None:
@@ -816,6 +825,14 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int,
     def expand(given, what):
         if isinstance(given, str):
             given = (given,)
+        if not isinstance(given, (tuple, list, set, frozenset)) or not all(
+            isinstance(n, str) for n in given
+        ):
+            raise TypeError(
+                f"`{what}` is a parameter's name or a sequence of names, e.g. ('k1', 'k2'); "
+                f"got {given!r}."
+            )
+        offered = (coefficients, ("distortion",)) if what == "distortion" else (names, groups)
         out = []
         for name in given:
             if name in groups:
@@ -825,7 +842,7 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int,
             else:
                 raise ValueError(
                     f"unknown parameter {name!r} in `{what}` of a {lens} camera; use any of "
-                    f"{names} or the groups {tuple(groups)}."
+                    f"{offered[0]} or the groups {tuple(offered[1])}."
                 )
         return set(out)
 
@@ -930,6 +947,7 @@ def refine(
     """
     if not isinstance(cameras, Camera):
         raise ValueError(f"`cameras` must be an mvcalib.Camera; got {type(cameras).__name__}.")
+    check_loss(loss)
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`): padded
     # cameras have NaN seeds, which end at once, padded points are hidden.
     bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)

@@ -34,6 +34,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _sharding, _small, _status, _validate
 from ._camera import (
+    LENSES,
     Camera,
     _lens,
     finite_cameras,
@@ -65,6 +66,7 @@ from ._refine import (
     _robust_residuals,
     _skew_model,
     _unpack,
+    check_loss,
     parameter_names,
 )
 from ._registration import RigidTransform
@@ -1222,6 +1224,19 @@ def calibrate_rig(
         if verbose:
             print(f"calibrate_rig: {message} ({time.perf_counter() - tic:.2f} s)", file=sys.stderr)
 
+    if cameras is not None and not isinstance(cameras, Camera):
+        raise TypeError(
+            f"`cameras` is an mvcalib.Camera with a camera axis (a rig); got "
+            f"{type(cameras).__name__}."
+        )
+    if lens is not None and lens not in LENSES:
+        raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+    check_loss(loss)
+    if not _validate.is_concrete(target):
+        raise ValueError(
+            "`target` must be concrete (its plane is found from its values): inside jax.jit, "
+            "close over it rather than pass it as an argument."
+        )
     target = _validate.floating("target", target, (None, 3), xp=np)
     if target.ndim != 2:
         raise ValueError(f"`target` must have shape (N, 3); got {tuple(target.shape)}.")

@@ -135,3 +135,29 @@ def test_numpy_float64_input_without_x64_gives_no_warning():
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["float32"]
+
+
+def _misuses(rig):
+    """Plausible slips (from a trial of the API), each with the words its error must say."""
+    W, P, M = rig.world, rig.pixels, rig.mask
+    cameras = mc.calibrate(W, P, M).cameras
+    board = mc.synthetic.board_rig(jax.random.key(0), n_cameras=3, n_frames=10)
+    T, BP, BM = board.target, board.pixels, board.mask
+    return [
+        (lambda: mc.calibrate(W, P, M, refine="yes"), TypeError, "got 'yes'"),
+        (lambda: jax.jit(mc.calibrate)(W, P, M, refine=True), TypeError, "make it static"),
+        (lambda: mc.refine(cameras, W, P, M, loss="huber"), TypeError, r"mc.Huber\(scale\)"),
+        (lambda: mc.refine(cameras, W, P, M, distortion=True), TypeError, "got True"),
+        (lambda: mc.refine(cameras, W, P, M, distortion="k9"), ValueError,
+         r"use any of \('k1', 'k2', 'p1', 'p2', 'k3'\) or the groups \('distortion',\)"),
+        (lambda: mc.calibrate_rig(T, BP, BM, lens="fish-eye"), ValueError, "`lens` is one of"),
+        (lambda: mc.calibrate_rig(T, BP, BM, cameras=[board.cameras[0]]), TypeError, "got list"),
+        (lambda: mc.calibrate_rig(T, BP, BM, loss="huber"), TypeError, r"mc.Cauchy\(scale\)"),
+        (lambda: jax.jit(mc.calibrate_rig)(T, BP, BM), ValueError, "close over it"),
+    ]  # fmt: skip
+
+
+def test_misused_arguments_say_what_they_take(rig):
+    for call, error, words in _misuses(rig):
+        with pytest.raises(error, match=words):
+            call()
