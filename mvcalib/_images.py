@@ -17,7 +17,7 @@ from ._detect import Detection
 from ._label import Labels, label_dots
 from ._match import match_dots
 from ._photos import _grid_labels, _in_workers, _read_and_detect, read_image
-from ._pipeline import Calibration, CalibrationError, calibrate
+from ._pipeline import Calibration, CalibrationError, calibrate, mirror_note
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
 from ._second_look import _gate, _rms
@@ -101,12 +101,15 @@ class ImageCalibration:
                 "left out of the calibration"
             )
         files = [os.path.basename(n) for n in self.names]  # the table's camera, by its image
+        names = files if len(set(files)) == len(files) else self.names
         table = format_table(
             self.calibration.report,
             status=[Status(int(s)).name.lower() for s in status],
-            names=files if len(set(files)) == len(files) else self.names,
+            names=names,
         )
-        return "\n".join(lines) + "\n\n" + table
+        why = "a photo transposed or flipped, or a target in a left-handed frame"
+        note = mirror_note(self.calibration, names, why)
+        return "\n".join(lines) + "\n\n" + table + (f"\n{note}" if note else "")
 
 
 def _as_list(images) -> list:

@@ -80,7 +80,11 @@ class Calibration(eqx.Module):
                                         mirror_note(self)]))  # fmt: skip
 
 
-def mirror_note(result: Calibration, names=None) -> str:
+def mirror_note(
+    result: Calibration,
+    names=None,
+    why: str = "a left-handed world frame, or pixels given as (y, x) or with y up",
+) -> str:
     """A line naming the calibrated cameras that see a mirror image of the world (`mirrored`),
     which is legitimate (a left-handed world frame) but is also what pixels given as (y, x)
     look like; "" where there are none."""
@@ -91,9 +95,8 @@ def mirror_note(result: Calibration, names=None) -> str:
     which = ", ".join(names[i] for i in np.flatnonzero(mirrored))
     cameras = f"cameras {which} see" if mirrored.sum() > 1 else f"camera {which} sees"
     return (
-        f"mirrored: {cameras} a mirror image of the world (a left-handed world frame, or "
-        "pixels given as (y, x) or with y up): they project correctly, with the points at "
-        "negative depth; if that is not intended, check the axes."
+        f"mirrored: {cameras} a mirror image of the world ({why}): they project correctly, "
+        "with the points at negative depth; if that is not intended, check the axes."
     )
 
 

@@ -128,6 +128,19 @@ def test_colour_and_16_bit_photographs_give_the_same_cameras():
     P = np.asarray(result.calibration.P)
     np.testing.assert_allclose(P[1], P[0], rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(P[2], P[0], rtol=1e-6, atol=1e-9)
+    assert "mirrored" not in str(result)
+
+
+def test_a_transposed_photograph_is_named_as_seeing_a_mirror_image():
+    """A transposed photo calibrates (a mirror image is a camera too), OK, with the points
+    behind it: its result names it below the table, with the likely causes."""
+    camera = mc.synthetic.random_rig(jax.random.key(8), 1).cameras[0]
+    grey = render(camera, TARGET, key=8)
+    result = mc.calibrate_images([grey, grey.T], TARGET)
+    assert result.ok.all() and np.asarray(result.calibration.mirrored).tolist() == [False, True]
+    assert "mirrored: camera image 1 sees a mirror image of the world (a photo transposed" in str(
+        result
+    )
 
 
 @pytest.mark.parametrize(
