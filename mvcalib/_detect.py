@@ -92,6 +92,11 @@ def _as_grey(image) -> np.ndarray:
         )
     if kind == "c":
         raise ValueError("`image` is complex; pass real grey levels (e.g. `np.abs(image)`).")
+    if kind in "US" and array.ndim == 0:
+        raise ValueError(
+            f"`image` is the photograph's grey levels, an array; got the text {str(array)!r}: "
+            "read a file with `mc.read_image(path)`."
+        )
     if kind not in "uif":
         raise ValueError(f"`image` must hold numbers (uint8, uint16 or float); got {array.dtype}.")
     if array.size == 0:

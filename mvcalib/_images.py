@@ -294,6 +294,11 @@ def calibrate_images(
     ```
     """
     target = box_corner() if target is None else target
+    if not isinstance(target, Target):
+        raise TypeError(
+            "`target` is an mvcalib.targets.Target, e.g. mc.targets.box_corner() or "
+            f"mc.targets.from_file(path); got {type(target).__name__}."
+        )
     images = _as_list(images)
     seeds = [None] * len(images) if seeds is None else list(seeds)
     if len(seeds) != len(images):

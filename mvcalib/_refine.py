@@ -954,6 +954,17 @@ def refine(
     # (checked in NumPy when padded, or when they are NumPy arrays already: compiling nothing)
     host = bucketed or all(isinstance(x, np.ndarray) for x in (world, pixels, mask))
     world, pixels, mask = _validate.correspondences(world, pixels, mask, xp=np if host else jnp)
+    views = np.broadcast_shapes(world.shape[:-2], pixels.shape[:-2], mask.shape[:-1])
+    try:  # (the cameras broadcast to the correspondences' leading axes, not the other way)
+        fits = np.broadcast_shapes(cameras.batch_shape, views) == tuple(views)
+    except ValueError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"the rig has cameras of shape {cameras.batch_shape} but the correspondences are of "
+            f"{views} (the leading axes of `pixels`, `mask` and `world`); give each camera its "
+            "own pixels."
+        )
     free = _free_parameters(distortion, fix, skew, cameras.lens)
     cameras = _skew_model(
         cameras, skew, fix, xp=np if bucketed or isinstance(cameras.skew, np.ndarray) else jnp

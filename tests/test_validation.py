@@ -154,6 +154,12 @@ def _misuses(rig):
         (lambda: mc.calibrate_rig(T, BP, BM, cameras=[board.cameras[0]]), TypeError, "got list"),
         (lambda: mc.calibrate_rig(T, BP, BM, loss="huber"), TypeError, r"mc.Cauchy\(scale\)"),
         (lambda: jax.jit(mc.calibrate_rig)(T, BP, BM), ValueError, "close over it"),
+        (lambda: mc.refine(cameras, W, P[0], M[0]), ValueError,
+         r"cameras of shape \(2,\) but the correspondences are of \(\)"),
+        (lambda: mc.refine(cameras[np.array([0, 1, 0])], W, P, M), ValueError, "its own pixels"),
+        (lambda: mc.calibrate_images([np.zeros((64, 64))], "box_corner"), TypeError,
+         r"mc.targets.box_corner\(\) or mc.targets.from_file\(path\); got str"),
+        (lambda: mc.detect_dots("cam0.png"), ValueError, r"mc.read_image\(path\)"),
     ]  # fmt: skip
 
 
