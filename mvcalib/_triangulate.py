@@ -26,8 +26,10 @@ class Triangulation(eqx.Module):
       NaN, like `angle`, for a point seen by fewer than two views.
     - `angle`: `(..., N)` the widest angle between two of the point's rays, in degrees: small
       angles mean depth poorly determined.
-    - `ok`: `(..., N)` bool: at least 2 views, in front of every camera that sees it, and an
-      angle of at least `min_angle`.
+    - `ok`: `(..., N)` bool: at least 2 views, in front of every camera that sees it, an
+      angle of at least `min_angle`, and an `rms` of at most `max_rms` (by default any: `ok`
+      then says the geometry holds, not that the pixels agree; wrong matches or the wrong rig
+      are in `rms`).
     """
 
     points: Float[Array, "*batch N 3"]
@@ -322,6 +324,7 @@ def triangulate(
     *,
     refine: bool = False,
     min_angle: float = 1.0,
+    max_rms: float = np.inf,
     max_steps: int = 50,
 ) -> Triangulation:
     """Reconstruct world points from their pixels in several calibrated views.
@@ -347,6 +350,7 @@ def triangulate(
       influence, even if NaN.
     - `refine`: polish each point by minimising its reprojection error.
     - `min_angle`: the smallest ray angle (degrees) for `ok`.
+    - `max_rms`: the largest reprojection RMS (pixels) for `ok`; default any.
     - `max_steps`: Levenberg–Marquardt steps per point with `refine`.
 
     **Returns:** a `Triangulation` (points and per-point diagnostics).
@@ -378,6 +382,8 @@ def triangulate(
         )
     if C < 2:
         raise ValueError("triangulation needs at least 2 cameras.")
+    if not max_rms > 0:
+        raise ValueError(f"`max_rms` is a positive number of pixels; got {max_rms!r}.")
     if mask is None:
         mask = xp.all(xp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
@@ -392,6 +398,7 @@ def triangulate(
         pixels,
         mask,
         min_angle=np.asarray(min_angle, pixels.dtype),
+        max_rms=np.asarray(max_rms, pixels.dtype),
         refine=bool(refine),
         max_steps=int(max_steps),
         chunk=_chunk_size(C, pixels.shape[-2]),
@@ -401,8 +408,14 @@ def triangulate(
 
 
 @functools.partial(_buckets.jit, static_argnames=("refine", "max_steps", "chunk"))
-def _triangulate(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
+def _triangulate(cameras, pixels, mask, min_angle, max_rms, refine, max_steps, chunk):
     """`triangulate` of validated `pixels (..., C, N, 2)` and `mask (..., C, N)`."""
+    out = _triangulate_sets(cameras, pixels, mask, min_angle, refine, max_steps, chunk)
+    return eqx.tree_at(lambda o: o.ok, out, out.ok & (out.rms <= max_rms))
+
+
+def _triangulate_sets(cameras, pixels, mask, min_angle, refine, max_steps, chunk):
+    """Every point set's (the leading axes') triangulation."""
     cameras = jax.tree_util.tree_map(lambda a: jnp.asarray(a, pixels.dtype), cameras)
     # a NaN camera (not calibrated) sees nothing
     cameras, mask, _ = usable_rig(cameras, mask, unit_camera(pixels.dtype, cameras.lens))

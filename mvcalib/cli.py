@@ -302,6 +302,13 @@ def build_parser() -> argparse.ArgumentParser:
     triangulate.add_argument(
         "--min-angle", type=float, default=1.0, metavar="DEG", help="for ok (default 1 degree)"
     )
+    triangulate.add_argument(
+        "--max-rms",
+        type=float,
+        default=float("inf"),
+        metavar="PX",
+        help="for ok: the largest reprojection RMS (default any)",
+    )
 
     images = command(
         "calibrate-images",
@@ -496,6 +503,8 @@ def _check_usage(parser, args) -> None:
         parser.error("noise levels must be non-negative")
     if args.command == "triangulate" and not args.min_angle >= 0:
         parser.error("--min-angle must be non-negative")
+    if args.command == "triangulate" and not args.max_rms > 0:
+        parser.error("--max-rms must be positive")
     if args.command == "calibrate-rig" and args.huber is not None and not args.huber > 0:
         parser.error("--huber must be positive")
     if (
@@ -1047,7 +1056,12 @@ def _triangulate(args) -> int:
         f"({_count(int(mask.sum()), 'observation')})" + (", refined" if args.refine else "")
     )
     out = triangulate(
-        cameras, np.nan_to_num(pixels), mask, refine=args.refine, min_angle=args.min_angle
+        cameras,
+        np.nan_to_num(pixels),
+        mask,
+        refine=args.refine,
+        min_angle=args.min_angle,
+        max_rms=args.max_rms,
     )
     points, views, rms, angle, ok = (
         np.asarray(a) for a in (out.points, out.views, out.rms, out.angle, out.ok)
@@ -1065,7 +1079,8 @@ def _triangulate(args) -> int:
     io.write_atomic(args.out, buffer.getvalue())
     print(
         f"{made.sum()} of {_count(P, 'point')} triangulated (seen by 2 cameras or more), "
-        f"{ok.sum()} ok (in front of their cameras, rays >= {args.min_angle:g} deg apart)"
+        f"{ok.sum()} ok (in front of their cameras, rays >= {args.min_angle:g} deg apart"
+        + (f", RMS <= {args.max_rms:g} px)" if np.isfinite(args.max_rms) else ")")
     )
     if made.any():
         print(
@@ -1073,11 +1088,12 @@ def _triangulate(args) -> int:
             f"{rms[made].max():.4f} px"
         )
     far = ok & (rms > FAR_PX)
-    if far.any():  # (`ok` is geometric: in front, rays apart; it does not judge the fit)
+    if far.any():  # (without --max-rms, `ok` is geometric: in front, rays apart)
         print(
             f"note: {_count(int(far.sum()), 'ok point')} reproject worse than {FAR_PX:g} px "
             f"(the worst {rms[far].max():.3g} px): check that the tracks' cameras are the rig's "
-            "and that the rig is calibrated; the rms_px column says which"
+            "and that the rig is calibrated; the rms_px column says which, --max-rms PX "
+            "leaves them out of ok"
         )
     if made.any() and not ok.any():
         R, t = np.asarray(cameras.R), np.asarray(cameras.t)

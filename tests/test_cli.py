@@ -392,6 +392,8 @@ def files(tmp_path, monkeypatch, cache_off):
         (["triangulate", "rig.json", "tracks.csv", "--out", "p.json"], 2, "must be a .csv"),
         (["triangulate", "rig.json", "tracks.csv", "--out", "p.csv", "--min-angle", "-1"], 2,
          "--min-angle must be non-negative"),
+        (["triangulate", "rig.json", "tracks.csv", "--out", "p.csv", "--max-rms", "0"], 2,
+         "--max-rms must be positive"),
         (["detect", "dots.png", "--out", "d.txt"], 2, "must be a .csv or .json"),
         (["detect", "none.png", "--out", "d.csv"], 2, "no such image file: none.png"),
         (["detect", "dots.png", "--no-label", "--out", "folder.csv", "--quiet"], 2,
@@ -432,6 +434,14 @@ def test_triangulate_points_out_ok_points_that_fit_badly(files, capsys):
     assert cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv"]) == 0
     out = capsys.readouterr().out
     assert f"{len(world)} ok" in out and "note: 3 ok points reproject worse than 10 px" in out
+    assert cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv", "--max-rms", "2"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        f"{len(world) - 3} ok (in front of their cameras, rays >= 1 deg apart, RMS <= 2 px)" in out
+    )
+    assert "note:" not in out
+    with open("p.csv") as f:
+        assert [row["ok"] for row in csv.DictReader(f)][:4] == ["0", "0", "0", "1"]
 
 
 def test_calibrate_writes_the_format_its_out_file_names(files, capsys):

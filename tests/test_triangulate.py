@@ -305,3 +305,19 @@ def test_chunks_of_points_equal_one_batch(monkeypatch):
     for name in ("views", "ok"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
     assert np.isnan(np.asarray(whole.points)).any()  # some points have fewer than two views
+
+
+def test_max_rms_leaves_points_whose_pixels_disagree_out_of_ok():
+    """`ok` alone judges the geometry; `max_rms` adds the pixels' agreement, in the same
+    compiled program (a traced threshold: no new compile for another value)."""
+    rig = mc.synthetic.random_rig(jax.random.key(6), n_cameras=4, noise=0.3)
+    pixels = np.array(rig.pixels)
+    pixels[1, :3] += 40.0  # three points that camera 1 sees 40 px off
+    loose = mc.triangulate(rig.cameras, pixels)
+    strict = mc.triangulate(rig.cameras, pixels, max_rms=2.0)
+    assert bool(np.all(loose.ok))
+    np.testing.assert_array_equal(strict.ok, np.asarray(loose.rms) <= 2.0)
+    assert not np.any(np.asarray(strict.ok)[:3]) and np.all(np.asarray(strict.ok)[3:])
+    np.testing.assert_array_equal(strict.points, loose.points)  # the points themselves the same
+    with pytest.raises(ValueError, match="`max_rms` is a positive number"):
+        mc.triangulate(rig.cameras, pixels, max_rms=0.0)
