@@ -469,6 +469,14 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     progress = C * F > 20 if progress is None else progress
     pixels = np.full((C, F, len(points), 2), np.nan)
     taken = [(c, f) for c, f in np.ndindex(C, F) if photos[c][f] is not None]
+    missing = [(c, f) for c, f in taken if isinstance(photos[c][f], (str, os.PathLike))
+               and not os.path.isfile(photos[c][f])]  # fmt: skip
+    if missing:  # (a typo in a path: said before any photo is read, not as a frame unseen)
+        (c, f), more = missing[0], len(missing) - 1
+        raise ValueError(
+            f"no such photo file: {photos[c][f]} ({names[c]}, frame {f})"
+            + (f", and {more} more" if more else "")
+        )
     one = functools.partial(_grid_labels, detect=dict(detect or {}), layout=_layout(grid),
                             markers=grid.fiducials, n_points=len(points))  # fmt: skip
     every = max(len(taken) // 10, 1)

@@ -395,6 +395,11 @@ def test_a_rig_from_photos_of_a_marked_grid_moved_through_the_volume():
         mc.observe_grid([photos[0], photos[1][:3]], grid)
     with pytest.raises(ValueError, match=r"got a photo where a camera's list should be"):
         mc.observe_grid(photos[0], grid)  # one camera's photos, not a list of cameras' lists
+    typo = [list(camera) for camera in photos]
+    typo[1][2], typo[0][0] = "nowhere/cam1_2.png", "nowhere/cam0_0.png"
+    with pytest.raises(ValueError, match=r"no such photo file: nowhere/cam0_0.png \(cam0, frame "
+                       r"0\), and 1 more"):  # fmt: skip
+        mc.observe_grid(typo, grid)
     with pytest.raises(ValueError, match="not a grid of dots"):
         mc.observe_grid(photos, mc.targets.box_corner())
 
