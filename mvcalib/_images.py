@@ -450,6 +450,11 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     """
     from .io import Observations
 
+    if not isinstance(grid, Target):
+        raise TypeError(
+            "`grid` is an mvcalib.targets.Target, e.g. mc.targets.dot_grid(rows, cols, spacing); "
+            f"got {type(grid).__name__}."
+        )
     points = np.asarray(grid.points, float)
     if any(isinstance(camera, (str, os.PathLike, np.ndarray)) for camera in photos):
         raise ValueError(

@@ -238,6 +238,21 @@ def _score(P, world, blobs, tol) -> np.ndarray:
     return score
 
 
+def check_kinds(function: str, detection, target=None) -> None:
+    """Refuse what is not a `Detection` (an image given in its place is a common slip) or, with
+    `target`, not a `Target`, saying what to pass."""
+    if not isinstance(detection, Detection):
+        raise TypeError(
+            f"{function} takes the dots `mc.detect_dots(image)` found, a Detection; got "
+            f"{type(detection).__name__}."
+        )
+    if target is not None and not isinstance(target, Target):
+        raise TypeError(
+            f"{function}'s `target` is an mvcalib.targets.Target, e.g. mc.targets.box_corner() or "
+            f"mc.targets.from_file(path); got {type(target).__name__}."
+        )
+
+
 def label_dots(
     detection: Detection,
     target: Target,
@@ -291,6 +306,7 @@ def label_dots(
 
     ```
     """
+    check_kinds("label_dots", detection, target)
     fiducials = np.asarray(target.fiducials, dtype=int)
     world = np.asarray(target.points, dtype=np.float64)
     M, K, F = len(world), len(detection), len(fiducials)

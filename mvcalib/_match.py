@@ -229,6 +229,7 @@ def match_dots(
 
     ```
     """
+    _label.check_kinds("match_dots", detection, target)
     from ._camera import Camera  # (JAX: imported where a camera is used, see `_photos`)
 
     world = np.asarray(target.points, dtype=np.float64)
@@ -484,6 +485,7 @@ def label_grid(
 
     ```
     """
+    _label.check_kinds("label_grid", detection)
     blobs = np.asarray(detection.centroids, dtype=np.float64).reshape(-1, 2)
     M, B = rows * cols, len(blobs)
     markers = _marker_ids(markers, M)

@@ -160,7 +160,20 @@ def _misuses(rig):
         (lambda: mc.calibrate_images([np.zeros((64, 64))], "box_corner"), TypeError,
          r"mc.targets.box_corner\(\) or mc.targets.from_file\(path\); got str"),
         (lambda: mc.detect_dots("cam0.png"), ValueError, r"mc.read_image\(path\)"),
+        (lambda: mc.label_grid(np.zeros((64, 64)), 4, 5), TypeError,
+         r"takes the dots `mc.detect_dots\(image\)` found, a Detection; got ndarray"),
+        (lambda: mc.label_dots(_detection(), mc.targets.box_corner().points), TypeError,
+         "label_dots's `target` is an mvcalib.targets.Target"),
+        (lambda: mc.match_dots(np.zeros((64, 64)), mc.targets.box_corner(), cameras[0]),
+         TypeError, "match_dots takes the dots"),
+        (lambda: mc.observe_grid([[np.zeros((64, 64))]], np.zeros((20, 3))), TypeError,
+         r"`grid` is an mvcalib.targets.Target"),
     ]  # fmt: skip
+
+
+def _detection():
+    camera = mc.synthetic.random_rig(jax.random.key(1), 1).cameras[0]
+    return mc.detect_dots(mc.synthetic.render(camera, mc.targets.box_corner(), key=1))
 
 
 def test_misused_arguments_say_what_they_take(rig):
