@@ -133,6 +133,14 @@ def observe(key, cameras: Camera, world, noise: float, image_size) -> tuple:
     return true, noisy, mask
 
 
+@_buckets.eager
+def _split(key):
+    """`jax.random.split(key)` as two keys: one program where called eagerly (the split and
+    the unpacking would compile one each)."""
+    first, second = jax.random.split(key)
+    return first, second
+
+
 def random_rig(
     key,
     n_cameras: int = 4,
@@ -156,7 +164,7 @@ def random_rig(
     ```
     """
     target = box_corner() if target is None else target
-    k_cam, k_noise = jax.random.split(key)
+    k_cam, k_noise = _split(key)
     cameras = random_cameras(
         k_cam, n_cameras, target, image_size=image_size, dtype=dtype, **camera_options
     )
