@@ -14,6 +14,7 @@ at blur 0.5 / 1 px (the plain centroid over the blob grown by 3 px: 0.113 / 0.13
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 from scipy import ndimage
@@ -80,6 +81,11 @@ def _typical_area(labels: np.ndarray) -> float:
 
 def _as_grey(image) -> np.ndarray:
     """The image as float32 grey levels in [0, 1], or a ValueError saying what is wrong."""
+    if isinstance(image, (str, os.PathLike)):
+        raise ValueError(
+            f"`image` is the photograph's grey levels, an array; got the path {str(image)!r}: "
+            "read the file with `mc.read_image(path)`."
+        )
     try:
         array = np.asarray(image)
     except Exception as error:  # ragged nested lists and the like
@@ -92,11 +98,6 @@ def _as_grey(image) -> np.ndarray:
         )
     if kind == "c":
         raise ValueError("`image` is complex; pass real grey levels (e.g. `np.abs(image)`).")
-    if kind in "US" and array.ndim == 0:
-        raise ValueError(
-            f"`image` is the photograph's grey levels, an array; got the text {str(array)!r}: "
-            "read a file with `mc.read_image(path)`."
-        )
     if kind not in "uif":
         raise ValueError(f"`image` must hold numbers (uint8, uint16 or float); got {array.dtype}.")
     if array.size == 0:
