@@ -47,18 +47,19 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
     if not hasattr(x, "dtype"):
         x = np.asarray(x)
     dtype = np.dtype(x.dtype)
+    coarse = dtype.kind == "f" and dtype.itemsize < 4 or dtype.name == "bfloat16"
     if dtype.kind in "iu":
         x = xp.asarray(x, dtype=jnp.result_type(float))
-    elif dtype.kind != "f":
-        raise ValueError(
-            f"`{name}` must hold real floating-point numbers; got dtype {dtype}. "
-            "Convert it with `.astype(float)` (complex, boolean and object arrays are refused)."
-        )
-    elif dtype.itemsize < 4:
+    elif coarse:
         raise ValueError(
             f"`{name}` has dtype {dtype}, which is too coarse for calibration "
             "(pixel coordinates above 2048 cannot even be represented exactly); "
             "use float32 or float64."
+        )
+    elif dtype.kind != "f":
+        raise ValueError(
+            f"`{name}` must hold real floating-point numbers; got dtype {dtype}. "
+            "Convert it with `.astype(float)` (complex, boolean and object arrays are refused)."
         )
     x = xp.asarray(x)
     if last_dims is not None:

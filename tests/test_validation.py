@@ -45,10 +45,12 @@ def test_non_finite_visible_entries(rig, bad):
     assert np.all(np.isfinite(np.asarray(mc.dlt(rig.world, pixels, mask))))
 
 
-@pytest.mark.parametrize("dtype", [np.complex128, np.bool_, np.float16, object])
+@pytest.mark.parametrize("dtype", [np.complex128, np.bool_, np.float16, object, jnp.bfloat16])
 def test_wrong_dtypes(rig, dtype):
-    with pytest.raises(ValueError, match="`pixels`"):
+    with pytest.raises(ValueError, match="`pixels`") as error:
         mc.dlt(rig.world, np.asarray(rig.pixels).astype(dtype))
+    if dtype in (np.float16, jnp.bfloat16):  # floating point, but too coarse: said so
+        assert "too coarse for calibration" in str(error.value)
 
 
 def test_strings_are_refused(rig):
