@@ -67,7 +67,8 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
         if x.ndim < k or tuple(x.shape[x.ndim - k :]) != tuple(
             d if d is not None else x.shape[x.ndim - k + i] for i, d in enumerate(last_dims)
         ):
-            want = ", ".join("N" if d is None else str(d) for d in last_dims)
+            free = iter("CN" if last_dims.count(None) == 2 else "N" * len(last_dims))
+            want = ", ".join(next(free) if d is None else str(d) for d in last_dims)
             raise ValueError(f"`{name}` must have shape (..., {want}); got {tuple(x.shape)}.")
     return x
 

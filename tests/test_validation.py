@@ -162,6 +162,8 @@ def _misuses(rig):
         (lambda: mc.calibrate_images([np.zeros((64, 64))], "box_corner"), TypeError,
          r"mc.targets.box_corner\(\) or mc.targets.from_file\(path\); got str"),
         (lambda: mc.detect_dots("cam0.png"), ValueError, r"mc.read_image\(path\)"),
+        (lambda: mc.triangulate(cameras, P[:, 0]), ValueError,
+         r"`pixels` must have shape \(\.\.\., C, N, 2\); got \(2, 2\)"),
         (lambda: mc.label_grid(np.zeros((64, 64)), 4, 5), TypeError,
          r"takes the dots `mc.detect_dots\(image\)` found, a Detection; got ndarray"),
         (lambda: mc.label_dots(_detection(), mc.targets.box_corner().points), TypeError,
