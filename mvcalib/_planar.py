@@ -837,6 +837,8 @@ def calibrate_planar(
     _check_views(pixels, mask, skew)
     if lens not in LENSES:
         raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+    if image_size is not None:
+        _validate.in_image(pixels, mask, image_size)
     if lens == "fisheye":
         if image_size is None:
             raise ValueError(

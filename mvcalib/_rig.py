@@ -1273,6 +1273,8 @@ def calibrate_rig(
         )
     if lens is None:
         lens = "pinhole" if cameras is None else cameras.lens
+    if image_size is not None:
+        _validate.in_image(pixels, mask, image_size)
     if cameras is not None and cameras.lens != lens:
         raise ValueError(f"`lens={lens!r}` but the starting `cameras` are {cameras.lens} cameras.")
     if cameras is None and lens == "fisheye":

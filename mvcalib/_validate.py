@@ -169,3 +169,29 @@ def _check_finite(world, pixels, mask):
 def at_least(name: str, x, n: int, what: str):
     if x.shape[-2] < n:
         raise ValueError(f"`{name}` needs at least {n} {what}; got shape {tuple(x.shape)}.")
+
+
+def in_image(pixels, mask, image_size) -> None:
+    """Refuse visible pixels outside `image_size=(width, height)` by more than 1 % of its larger
+    side (noise and a dot cut by the border stay inside that): pixels given as (row, column), or
+    the size as (height, width), are what this usually is. Concrete arrays only."""
+    bad = f"`image_size` is (width, height) in pixels; got {image_size!r}."
+    try:
+        width, height = (float(v) for v in image_size)
+    except (TypeError, ValueError):
+        raise ValueError(bad) from None
+    if not (width > 0 and height > 0):
+        raise ValueError(bad)
+    if not is_concrete(pixels, mask):
+        return
+    seen = np.asarray(pixels)[np.asarray(mask, bool)]
+    margin = 0.01 * max(width, height)
+    low, high = -0.5 - margin, np.array([width, height]) - 0.5 + margin
+    outside = ((seen < low) | (seen > high)).any(-1)
+    if outside.any():
+        x, y = seen[np.argmax(outside)]
+        raise ValueError(
+            f"{int(outside.sum())} visible pixels lie outside the image of `image_size` "
+            f"({width:g}, {height:g}), e.g. ({x:.1f}, {y:.1f}): are the pixels (x = column, "
+            "y = row) and the size (width, height)?"
+        )

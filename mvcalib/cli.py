@@ -692,7 +692,7 @@ def _count(n: int, what: str) -> str:
 def _calibrate(args) -> int:
     import numpy as np
 
-    from . import io
+    from . import _validate, io
     from ._pipeline import calibrate, mirror_note
     from ._report import format_table
     from ._status import Status
@@ -709,6 +709,8 @@ def _calibrate(args) -> int:
         f"read {_count(C, 'camera')}, {_count(P, 'point')}, "
         f"{_count(int(data.mask.sum()), 'observation')} from {args.correspondences}"
     )
+    if args.image_size is not None:  # (written to the files: (width, height), as the pixels)
+        _validate.in_image(data.pixels, data.mask, args.image_size)
     refine = False
     if args.refine or args.distortion is not None:
         refine = {} if args.distortion is None else {"distortion": args.distortion}
@@ -770,7 +772,7 @@ def _unique(names) -> list[str]:
 def _calibrate_rig(args) -> int:
     import numpy as np
 
-    from . import io
+    from . import _validate, io
     from ._camera import LENSES
     from ._refine import GROUPS, Huber
     from ._rig import calibrate_rig
@@ -795,6 +797,8 @@ def _calibrate_rig(args) -> int:
         f"read {_count(C, 'camera')}, {_count(F, 'frame')}, {_count(N, 'target point')}, "
         f"{_count(int(obs.mask.sum()), 'observation')} from {args.observations}"
     )
+    if args.image_size is not None:
+        _validate.in_image(obs.pixels, obs.mask, args.image_size)
     cameras = None
     if args.intrinsics is not None:
         cameras = _starting_rig(args.intrinsics, obs.cameras)

@@ -339,6 +339,8 @@ def files(tmp_path, monkeypatch, cache_off):
         (["calibrate", "corr.csv", "--out", "r", "--format", "colmap", "--image-size", "9", "9"],
          2, "needs --refine or --distortion"),
         (["calibrate", "corr.csv", "--out", "r.json", "--distortion", "k9"], 2, "'k9' is not"),
+        (["calibrate", "corr.csv", "--out", "r.yml", "--image-size", "100", "100"], 2,
+         "visible pixels lie outside the image of `image_size` (100, 100)"),
         (["calibrate", "corr.csv", "--out", "r.json", "--format", "ply"], 2, "invalid choice"),
         (["calibrate", "corr.csv", "--out", "r.txt"], 2,
          "--out r.txt: a .json or .yml/.yaml file, or a folder with --format colmap"),

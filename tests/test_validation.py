@@ -162,6 +162,11 @@ def _misuses(rig):
         (lambda: mc.calibrate_images([np.zeros((64, 64))], "box_corner"), TypeError,
          r"mc.targets.box_corner\(\) or mc.targets.from_file\(path\); got str"),
         (lambda: mc.detect_dots("cam0.png"), ValueError, r"mc.read_image\(path\)"),
+        (lambda: mc.calibrate_planar(T, _seen(BP, BM)[0][..., ::-1], _seen(BP, BM)[1],
+                                     image_size=board.image_size), ValueError,
+         r"visible pixels lie outside the image of `image_size` \(1280, 800\).*\(x = column"),
+        (lambda: mc.calibrate_planar(T, *_seen(BP, BM), image_size=1280), ValueError,
+         r"`image_size` is \(width, height\) in pixels; got 1280"),
         (lambda: mc.triangulate(cameras, P[:, 0]), ValueError,
          r"`pixels` must have shape \(\.\.\., C, N, 2\); got \(2, 2\)"),
         (lambda: mc.label_grid(np.zeros((64, 64)), 4, 5), TypeError,
@@ -173,6 +178,12 @@ def _misuses(rig):
         (lambda: mc.observe_grid([[np.zeros((64, 64))]], np.zeros((20, 3))), TypeError,
          r"`grid` is an mvcalib.targets.Target"),
     ]  # fmt: skip
+
+
+def _seen(pixels, mask):
+    """Camera 0's views of the board with enough corners for a homography."""
+    keep = np.asarray(mask)[0].sum(-1) >= 4
+    return np.asarray(pixels)[0][keep], np.asarray(mask)[0][keep]
 
 
 def _detection():
