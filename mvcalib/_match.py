@@ -342,7 +342,10 @@ def match_dots(
         pixels, where = clicks
         off = np.linalg.norm(blobs[index[where]] - pixels, axis=-1)
         moved = found[where] & (off > max(_FIRST_GATE * spacing, 3 * _MIN_GATE))
-        for name, which in (("clicks corrected", moved), ("clicked dots not found", ~found[where])):
+        for name, which in (
+            ("clicks corrected (to the blob the camera puts there)", moved),
+            ("clicked dots with no blob matched (left out)", ~found[where]),
+        ):
             if which.any():
                 message += f"; {name}: ids " + ", ".join(
                     str(int(i)) for i in target.ids[where[which]]
