@@ -1361,9 +1361,21 @@ def calibrate_rig(
                 "points (ids, order, units), or start from known `cameras=`."
             )
         if concrete and (status := int(statuses[solve_reference])) != Status.OK:
+            why = Status(status).message
+            if planar and status == Status.DEGENERATE:  # (the DLT's words are for 3-D points)
+                frames = int(np.asarray(mask)[solve_reference].any(-1).sum())
+                seen = (
+                    "one frame of the board does"
+                    if frames == 1
+                    else (f"{frames} frames of the board do")
+                )
+                why = (
+                    f"its {seen} not determine it (check that `pixels` is (C, F, N, 2), cameras "
+                    "first)"
+                )
             raise ValueError(
-                f"the reference camera {solve_reference} cannot be calibrated: "
-                f"{Status(status).message}. Choose another `reference`."
+                f"the reference camera {solve_reference} cannot be calibrated: {why}. Choose "
+                "another `reference`."
             )
         return result, solve_reference, poor_pairs
 

@@ -449,6 +449,13 @@ def test_bad_input_raises_with_the_reason():
         mc.calibrate_rig(line, rig.pixels, rig.mask)
     with pytest.raises(ValueError, match="cameras="):
         mc.calibrate_rig(rig.target, rig.pixels, rig.mask, fix="intrinsics")
+    # the frame and camera axes swapped: the reference "camera" has a frame or two of the board,
+    # said as such (the DLT's words were "use a non-coplanar target")
+    board = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=20, noise=0.3)
+    swapped = np.swapaxes(np.asarray(board.pixels), 0, 1), np.swapaxes(np.asarray(board.mask), 0, 1)
+    with pytest.raises(ValueError, match=r"of the board do(es)? not determine it \(check that "
+                       r"`pixels` is \(C, F, N, 2\), cameras first\)"):  # fmt: skip
+        mc.calibrate_rig(board.target, *swapped)
 
 
 # ---------------------------------------------------------------------------- real data
