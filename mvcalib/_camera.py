@@ -33,6 +33,12 @@ def _projection(camera: Camera, world):
 _compiled_projection = _buckets.jit(_projection, jit=eqx.filter_jit)
 
 
+def check_lens(lens) -> None:
+    """Refuse a `lens` that is not one of `LENSES`, naming them."""
+    if lens not in LENSES:
+        raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+
+
 def lens_of(dist) -> str:
     """The lens of a camera with these distortion coefficients `(..., 5)` or `(..., 4)`: inside
     the library's kernels, where cameras are rebuilt from packed parameter vectors, the number
@@ -119,8 +125,7 @@ class Camera(eqx.Module):
     lens: str = eqx.field(static=True, default="pinhole")
 
     def __init__(self, alpha_u, alpha_v, u0, v0, R, t, skew=None, dist=None, lens="pinhole"):
-        if lens not in LENSES:
-            raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+        check_lens(lens)
         names = LENSES[lens]
         alpha_u, alpha_v, u0, v0 = (jnp.asarray(a) for a in (alpha_u, alpha_v, u0, v0))
         R, t = jnp.asarray(R), jnp.asarray(t)

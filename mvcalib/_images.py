@@ -24,7 +24,7 @@ from ._second_look import _gate, _rms
 from ._second_look import second_look as _second_look
 from ._status import Status
 from ._triangulate import triangulate
-from .targets import Target, _layout, box_corner
+from .targets import Target, _layout, box_corner, check_target
 
 __all__ = ["ImageCalibration", "calibrate_images", "read_image"]
 
@@ -294,11 +294,7 @@ def calibrate_images(
     ```
     """
     target = box_corner() if target is None else target
-    if not isinstance(target, Target):
-        raise TypeError(
-            "`target` is an mvcalib.targets.Target, e.g. mc.targets.box_corner() or "
-            f"mc.targets.from_file(path); got {type(target).__name__}."
-        )
+    check_target(target)
     images = _as_list(images)
     seeds = [None] * len(images) if seeds is None else list(seeds)
     if len(seeds) != len(images):
@@ -450,11 +446,7 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     """
     from .io import Observations
 
-    if not isinstance(grid, Target):
-        raise TypeError(
-            "`grid` is an mvcalib.targets.Target, e.g. mc.targets.dot_grid(rows, cols, spacing); "
-            f"got {type(grid).__name__}."
-        )
+    check_target(grid, "`grid`", "mc.targets.dot_grid(rows, cols, spacing)")
     points = np.asarray(grid.points, float)
     if any(isinstance(camera, (str, os.PathLike, np.ndarray)) for camera in photos):
         raise ValueError(

@@ -28,7 +28,7 @@ import itertools
 import numpy as np
 
 from ._detect import Detection
-from .targets import Target
+from .targets import Target, check_target
 
 __all__ = ["Labels", "label_dots"]
 
@@ -246,11 +246,8 @@ def check_kinds(function: str, detection, target=None) -> None:
             f"{function} takes the dots `mc.detect_dots(image)` found, a Detection; got "
             f"{type(detection).__name__}."
         )
-    if target is not None and not isinstance(target, Target):
-        raise TypeError(
-            f"{function}'s `target` is an mvcalib.targets.Target, e.g. mc.targets.box_corner() or "
-            f"mc.targets.from_file(path); got {type(target).__name__}."
-        )
+    if target is not None:
+        check_target(target, f"{function}'s `target`")
 
 
 def label_dots(

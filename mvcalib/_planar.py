@@ -16,7 +16,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _status, _validate
-from ._camera import LENSES, Camera, lens_of, placeholder
+from ._camera import LENSES, Camera, check_lens, lens_of, placeholder
 from ._dlt import (
     DEFAULT_MAX_RELATIVE_RMS,
     REFITS,
@@ -835,8 +835,7 @@ def calibrate_planar(
         world, pixels, mask, min_points=MIN_PLANE_POINTS, xp=xp
     )
     _check_views(pixels, mask, skew)
-    if lens not in LENSES:
-        raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+    check_lens(lens)
     if image_size is not None:
         _validate.in_image(pixels, mask, image_size)
     if lens == "fisheye":

@@ -34,9 +34,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _sharding, _small, _status, _validate
 from ._camera import (
-    LENSES,
     Camera,
     _lens,
+    check_lens,
     finite_cameras,
     undistort_points,
     unit_camera,
@@ -1229,8 +1229,8 @@ def calibrate_rig(
             f"`cameras` is an mvcalib.Camera with a camera axis (a rig); got "
             f"{type(cameras).__name__}."
         )
-    if lens is not None and lens not in LENSES:
-        raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
+    if lens is not None:
+        check_lens(lens)
     check_loss(loss)
     if not _validate.is_concrete(target):
         raise ValueError(

@@ -86,6 +86,19 @@ class Target:
         return len(self.points)
 
 
+def check_target(
+    value,
+    name: str = "`target`",
+    example: str = "mc.targets.box_corner() or mc.targets.from_file(path)",
+) -> None:
+    """Refuse what is not a `Target` (an array of its points is a common slip), saying how to
+    make one."""
+    if not isinstance(value, Target):
+        raise TypeError(
+            f"{name} is an mvcalib.targets.Target, e.g. {example}; got {type(value).__name__}."
+        )
+
+
 def from_file(path, *, dot_radius: float = float("nan"), units: str = "mm") -> Target:
     r"""A target from a text file: one dot per line, `id x y z` (whitespace, as OpenPTV's
     `target_on_a_side.txt`), or CSV with a header naming `id,x,y,z` (any order, other columns
