@@ -79,6 +79,14 @@ def _typical_area(labels: np.ndarray) -> float:
     return float(areas[np.searchsorted(mass, 0.5 * mass[-1])])
 
 
+def flag(name: str, value) -> bool:
+    """`value` as a bool, or a TypeError: a string such as "no" is true to Python, and would
+    silently do the opposite of what was meant."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"`{name}` is True or False; got {value!r}.")
+    return bool(value)
+
+
 def _as_grey(image) -> np.ndarray:
     """The image as float32 grey levels in [0, 1], or a ValueError saying what is wrong."""
     if isinstance(image, (str, os.PathLike)):
@@ -327,6 +335,14 @@ def detect_dots(
 
     ```
     """
+    dark_dots, exclude_border, return_stages = (
+        flag(name, value)
+        for name, value in (
+            ("dark_dots", dark_dots),
+            ("exclude_border", exclude_border),
+            ("return_stages", return_stages),
+        )
+    )
     grey = _as_grey(image)
     height, width = grey.shape
     max_area = 0.02 * grey.size if max_area is None else max_area

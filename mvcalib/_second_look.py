@@ -56,7 +56,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._camera import Camera
-from ._detect import Detection, _as_grey
+from ._detect import Detection, _as_grey, flag
 from ._label import Labels
 from .targets import Target
 
@@ -388,6 +388,7 @@ def second_look(
         else:
             got = f"a {type(camera).__name__}"
         raise ValueError(f"`camera` must be one mvcalib.Camera (this view's); got {got}.")
+    dark_dots = flag("dark_dots", dark_dots)
     if not labels.ok:
         return labels
     centre_by = ("centroid" if dark_dots else "template") if centre_by is None else centre_by

@@ -177,6 +177,8 @@ def _misuses(rig):
          TypeError, "match_dots takes the dots"),
         (lambda: mc.observe_grid([[np.zeros((64, 64))]], np.zeros((20, 3))), TypeError,
          r"`grid` is an mvcalib.targets.Target"),
+        (lambda: mc.detect_dots(np.zeros((64, 64)), dark_dots="no"), TypeError,
+         "`dark_dots` is True or False; got 'no'"),
     ]  # fmt: skip
 
 
