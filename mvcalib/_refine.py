@@ -279,7 +279,14 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
 
 class _RoundingTrustRegion(optx.ClassicalTrustRegion):
     """optimistix's trust region, which also accepts a trial that changed the loss by no more
-    than its rounding (as `SecantLM`'s "exact" test)."""
+    than its rounding (as `SecantLM`'s "exact" test). Its step size starts in the parameters'
+    dtype: optimistix's starts as `jnp.array(1.0)`, float64 where x64 is on, and the damped
+    system of a float32 problem then failed to solve (a float64 damping row)."""
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        dtype = jnp.result_type(*jax.tree_util.tree_leaves(y))
+        return eqx.tree_at(lambda s: s.step_size, state, state.step_size.astype(dtype))
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         step_size, accept, result, state = super().step(

@@ -57,6 +57,26 @@ def test_refined_rms_reaches_the_noise_floor_where_the_dlt_does_not(rig32):
     np.testing.assert_allclose(np.median(refined.cameras.dist[:, :2], 0), DIST[:2], atol=0.02)
 
 
+def test_float32_data_with_x64_on_is_refined_in_float32(rig32):
+    """float32 arrays in a process with x64 on (a float32 pipeline beside float64 code): every
+    solve that takes optimistix's Levenberg–Marquardt raised "Vector and operator structures do
+    not match" (its trust region's step size is float64 there). Now refined in float32, to the
+    float64 answer's RMS within float32's precision."""
+    cams, world, pixels, mask, _, refined = rig32
+    world32, pixels32 = (np.asarray(x, np.float32) for x in (world, pixels))
+    seed = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), cams[:4])
+    out = mc.refine(seed, world32, pixels32[:4], mask[:4])
+    assert out.cameras.R.dtype == np.float32 and bool(np.all(out.ok))
+    np.testing.assert_allclose(out.rms_after, refined.rms_after[:4], rtol=1e-3)
+    points = mc.triangulate(out.cameras, pixels32[:4, :10], mask[:4, :10], refine=True).points
+    cams64 = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), out.cameras)
+    points64 = mc.triangulate(cams64, pixels[:4, :10], mask[:4, :10], refine=True).points
+    assert points.dtype == np.float32
+    np.testing.assert_allclose(points, points64, atol=1e-3)  # mm, of a 160 mm target
+    rig = mc.refine_rig(out.cameras, world32, pixels32[:4], mask[:4])
+    assert rig.cameras.R.dtype == np.float32 and int(rig.result) == 0
+
+
 def test_calibrate_refine_is_the_same_as_refining_by_hand(rig32):
     cams, world, pixels, mask, dlt, refined = rig32
     one_call = mc.calibrate(world, pixels, mask, refine=True)
