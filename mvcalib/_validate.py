@@ -7,6 +7,10 @@ arrays. Kernels below this layer assume valid input and report per-camera proble
 
 from __future__ import annotations
 
+import os
+import sys
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -131,7 +135,46 @@ def correspondences(world, pixels, mask, *, min_points: int = MIN_POINTS, xp=jnp
     mask = boolean_mask("mask", mask, (*batch, n), xp=xp)
     if is_concrete(world, pixels, mask):
         _check_finite(world, pixels, mask)
+    if isinstance(world, np.ndarray) and world.dtype == np.float32:
+        _check_precision(world, mask)
     return world, pixels, mask
+
+
+# float32 rounds a coordinate to 2^-24 of its size; beyond this fraction of the points' extent
+# (~0.01 px in an image that the points fill), a float32 world loses what the pixels measure.
+MAX_ROUNDING = 2e-5
+
+
+def _check_precision(world: np.ndarray, mask: np.ndarray) -> None:
+    """Warn where float32 rounds the visible world points by more than `MAX_ROUNDING` of their
+    extent: coordinates far from the origin (e.g. UTM) of a small target."""
+    if world.ndim == 2:  # one target: the points any camera sees
+        seen = world[np.asarray(mask).reshape(-1, world.shape[0]).any(0)]
+    else:
+        seen = np.broadcast_to(world, mask.shape + (3,))[np.asarray(mask)]
+    seen = seen[np.isfinite(seen).all(-1)]
+    if len(seen) < 2:
+        return
+    size, extent = float(np.abs(seen).max()), float(np.ptp(seen, axis=0).max())
+    rounding = float(np.spacing(np.float32(size))) / 2
+    if extent > 0 and rounding > MAX_ROUNDING * extent:
+        warnings.warn(
+            f"`world` is float32 and lies up to {size:.6g} from the origin, {size / extent:.0f} "
+            f"times the points' extent: float32 rounds it by up to {rounding:.2g}, "
+            f"{rounding / extent:.1e} of the extent, and the cameras lose that precision. "
+            "Subtract an origin near the points first, or compute in float64: "
+            'jax.config.update("jax_enable_x64", True).',
+            stacklevel=_outside_mvcalib(),
+        )
+
+
+def _outside_mvcalib() -> int:
+    """The `stacklevel` of a warning raised here that names the first caller outside mvcalib."""
+    package = os.path.dirname(__file__)
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.dirname(frame.f_code.co_filename) == package:
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _non_finite(world, pixels, mask, xp=jnp):
