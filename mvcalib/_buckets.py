@@ -87,6 +87,21 @@ def pads(world, pixels, mask) -> bool:
     return len(batch) != 1 or cameras_and_points(batch[0], n) != (batch[0], n)
 
 
+def take(tree, index):
+    """`tree`'s arrays indexed along their leading axes (`rig[0]`, `rig[1:3]`, `rig[ok]`):
+    inside a trace or split over devices as JAX does; concrete, in NumPy (an eager slice of a JAX
+    array compiles a program per shape and leaf)."""
+    if not applies(tree, index):
+        return jax.tree_util.tree_map(lambda x: x[index], tree)
+    if isinstance(index, jax.Array):
+        index = np.asarray(index)
+
+    def one(x):
+        return x[index] if isinstance(x, np.ndarray) else jax.device_put(np.asarray(x)[index])
+
+    return jax.tree_util.tree_map(one, tree)
+
+
 def pad(x, axis: int, length: int, *, fill=None):
     """`x` (as a NumPy array) padded along `axis` to `length`: with `fill`, or with copies of its
     last entry along that axis when `fill` is None."""

@@ -184,16 +184,7 @@ class Camera(eqx.Module):
         """Select cameras of a rig: `rig[0]`, `rig[1:3]`, `rig[ok]`."""
         if not self.batch_shape:
             raise TypeError("a single Camera cannot be indexed; a rig has a leading camera axis.")
-        if not _buckets.applies(self, index):  # traced, or split over devices: as JAX does
-            return jax.tree_util.tree_map(lambda x: x[index], self)
-        # concrete: indexed in NumPy (an eager slice compiles a program per shape and leaf)
-        if isinstance(index, jax.Array):
-            index = np.asarray(index)
-
-        def take(x):
-            return x[index] if isinstance(x, np.ndarray) else jax.device_put(np.asarray(x)[index])
-
-        return jax.tree_util.tree_map(take, self)
+        return _buckets.take(self, index)
 
     @property
     def K(self) -> Float[Array, "*batch 3 3"]:

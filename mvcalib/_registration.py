@@ -36,6 +36,21 @@ class RigidTransform(eqx.Module):
         self.R = jnp.asarray(R)
         self.t = jnp.asarray(t)
 
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.t.shape[:-1])
+
+    def __len__(self) -> int:
+        if not self.batch_shape:
+            raise TypeError("a single RigidTransform has no length; a batch has leading axes.")
+        return self.batch_shape[0]
+
+    def __getitem__(self, index) -> RigidTransform:
+        """Select transforms of a batch: `poses[3]`, `poses[1:3]`, `poses[ok]`."""
+        if not self.batch_shape:
+            raise TypeError("a single RigidTransform cannot be indexed; a batch has leading axes.")
+        return _buckets.take(self, index)
+
     @classmethod
     def identity(cls, dtype=float) -> RigidTransform:
         # (put from NumPy: `jnp.eye`, `jnp.zeros` and `jnp.asarray` of a NumPy array, called

@@ -1,6 +1,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import central_difference_check
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -158,3 +159,20 @@ def test_rigid_transform_group_laws(seed_a, seed_b):
     np.testing.assert_array_equal(identity[3], [0.0, 0.0, 0.0, 1.0])
     M = np.asarray(a.as_matrix())
     np.testing.assert_allclose((np.c_[x, np.ones(5)] @ M.T)[:, :3], a.apply(x), atol=1e-9)
+
+
+def test_a_batch_of_transforms_is_indexed_as_a_rig_is():
+    """`poses[f]` of a batch (e.g. `calibrate_rig`'s `target_poses`) as JAX's own indexing gives
+    it, concrete and traced; a single transform has no length and no index."""
+    poses = mc.synthetic.board_rig(jax.random.key(0), n_cameras=2, n_frames=9).poses
+    keep = np.arange(9) % 3 == 0
+    assert poses.batch_shape == (9,) and len(poses) == 9
+    for i in (0, -1, slice(2, 5), keep, jnp.asarray(keep), np.array([8, 1])):
+        by_jax = jax.tree_util.tree_map(lambda x: x[i], poses)  # noqa: B023
+        jax.tree_util.tree_map(np.testing.assert_array_equal, poses[i], by_jax)
+    np.testing.assert_array_equal(jax.jit(lambda p: p[4].t)(poses), poses.t[4])
+    assert poses[4].batch_shape == ()
+    with pytest.raises(TypeError, match="cannot be indexed"):
+        poses[4][0]
+    with pytest.raises(TypeError, match="has no length"):
+        len(poses[4])
