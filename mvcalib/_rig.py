@@ -20,6 +20,7 @@ from there (`calibrate_rig`).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import sys
 import time
@@ -135,6 +136,8 @@ class RigCalibration(eqx.Module):
       the camera that saw the most frames); `parameter_std` `(C, P)` of the free parameters
       `parameter_names`, whose covariance blocks are `covariance` `(C, P, P)`.
     - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful).
+    - `origin_frame`: with `reference="target"`, the frame (an index along the frame axis) whose
+      target pose is the world frame; else None.
     """
 
     cameras: Camera
@@ -156,6 +159,7 @@ class RigCalibration(eqx.Module):
     iterations: Int[Array, ""]
     result: Int[Array, ""]
     parameter_names: tuple[str, ...] = eqx.field(static=True)
+    origin_frame: int | None = eqx.field(static=True, default=None)
 
     @property
     def ok(self) -> Bool[Array, " C"]:
@@ -204,6 +208,8 @@ class RigCalibration(eqx.Module):
                 f"centre std: relative to camera {gauge[0]}'s centre (the solve's reference "
                 "camera, whatever the world frame)"
             )
+        if self.origin_frame is not None:
+            lines.append(f"world frame: the target in frame {self.origin_frame}")
         return "\n".join(lines)
 
 
@@ -1169,8 +1175,9 @@ def calibrate_rig(
     - `distortion`: the coefficients estimated (default as for `mvcalib.refine`: a pinhole's
       k1, k2, p1, p2; a fisheye's k1..k4); `skew`: estimate it.
     - `reference`: the camera whose frame is the world's (default 0), or `"target"`: the
-      target's frame in `origin_frame` (default: the frame seen by the most cameras), so that
-      the board sets the world's origin and floor.
+      target's frame in `origin_frame` (an index along the frame axis of `pixels`, not a frame
+      id from a file; default: the frame seen by the most cameras), so that the board sets the
+      world's origin and floor.
     - `loss`: `mc.Huber(scale)` or `mc.Cauchy(scale)` (pixels) for wrong detections.
     - `rcond`: the closed form's threshold for a degenerate homography or DLT (default
       sqrt(machine epsilon)); `max_steps` of Levenberg–Marquardt.
@@ -1306,6 +1313,8 @@ def calibrate_rig(
         raise ValueError(f"`reference` is a camera index or 'target'; got {reference!r}.")
     if not isinstance(reference, str) and not 0 <= int(reference) < C:
         raise ValueError(f"`reference` {reference} is not a camera of the {C}.")
+    if origin_frame is not None:
+        _check_origin_frame(origin_frame, reference, F)
     plane = (
         _plane_frame(target, np.ones(N, bool), dtype) if planar else RigidTransform.identity(dtype)
     )
@@ -1492,6 +1501,27 @@ def _is_planar(target: np.ndarray) -> bool:
     return bool(s[2] <= tol * s[0])
 
 
+def _check_origin_frame(origin_frame, reference, n_frames: int) -> None:
+    """`origin_frame` is an index along the frame axis, used with `reference="target"`; a frame's
+    id from a file (clamped by JAX's indexing, it chose another frame without a word) or the
+    argument without `reference="target"` (ignored) is refused."""
+    if reference != "target":
+        raise ValueError(
+            "`origin_frame` chooses the target's pose that becomes the world frame with "
+            f"`reference='target'`; got reference={reference!r}."
+        )
+    if isinstance(origin_frame, (bool, np.bool_)) or not isinstance(
+        origin_frame, (int, np.integer)
+    ):
+        raise TypeError(f"`origin_frame` is a frame's index, an int; got {origin_frame!r}.")
+    if not 0 <= origin_frame < n_frames:
+        raise ValueError(
+            f"`origin_frame` is an index along the frame axis of `pixels`, 0 to {n_frames - 1}; "
+            f"got {origin_frame}. (A frame's id from an observations file is not its index: "
+            "`list(observations.frames).index(frame_id)` is.)"
+        )
+
+
 def _to_target_frame(result: RigCalibration, origin_frame, concrete) -> RigCalibration:
     """The result with the target's frame in `origin_frame` as the world's."""
     if origin_frame is None:
@@ -1509,13 +1539,11 @@ def _to_target_frame(result: RigCalibration, origin_frame, concrete) -> RigCalib
 
     # the centres' standard errors, rotated into the new frame (per axis, approximately)
     position_std = jnp.sqrt(jnp.einsum("ji,cj->ci", T.R**2, result.position_std**2))
-    return eqx.tree_at(
-        lambda r: (r.cameras, r.initial, r.target_poses, r.position_std),
+    return dataclasses.replace(
         result,
-        (
-            moved(result.cameras),
-            moved(result.initial),
-            T.inverse() @ result.target_poses,
-            position_std,
-        ),
+        cameras=moved(result.cameras),
+        initial=moved(result.initial),
+        target_poses=T.inverse() @ result.target_poses,
+        position_std=position_std,
+        origin_frame=f,
     )

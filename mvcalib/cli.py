@@ -45,7 +45,10 @@ EXAMPLES = {
   mvcalib calibrate-rig observations.csv --huber 2 --plot rig.png --out rig.json
                                   robust to wrong detections, with a figure of the residuals
   mvcalib calibrate-rig observations.csv --fisheye --image-size 1280 960 --out rig.json
-                                  fisheye cameras, nothing known but the photos' size""",
+                                  fisheye cameras, nothing known but the photos' size
+  mvcalib calibrate-rig observations.csv --reference target --origin-frame 120 --out rig.yml
+                                  the board in frame 120 (the file's id) is the world's; OpenCV
+                                  YAML (JSON keeps the statuses and standard errors too)""",
     "detect": """\
   mvcalib detect cam*.png --out dots.csv
                                   the dots of the box-corner target in each photo, labelled
@@ -208,7 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="OBSERVATIONS",
         help="observations .csv (mvcalib.io.save_observations) or caliscope's xy.csv",
     )
-    rig.add_argument("--out", required=True, metavar="JSON", help="rig file to write")
+    rig.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
+    rig.add_argument(
+        "--format",
+        choices=("json", "opencv", "colmap"),
+        help="json (records failed cameras, the standard errors and the settings too), opencv "
+        "(FileStorage YAML) or colmap (text model in the folder --out; needs --image-size); "
+        "default from --out: .json, .yml or .yaml",
+    )
     rig.add_argument(
         "--intrinsics",
         metavar="RIG",
@@ -247,7 +257,14 @@ def build_parser() -> argparse.ArgumentParser:
         default="0",
         metavar="CAMERA",
         help="the camera (index or name) whose frame is the world's (default 0), or 'target': "
-        "the target in the frame most cameras saw",
+        "the target in the frame most cameras saw (or --origin-frame's)",
+    )
+    rig.add_argument(
+        "--origin-frame",
+        type=int,
+        metavar="FRAME",
+        help="with --reference target: the frame (its id in the observations file) whose "
+        "target pose is the world, e.g. the board lying on the floor",
     )
     rig.add_argument(
         "--huber", type=float, metavar="PX", help="Huber loss of this scale (pixels) for outliers"
@@ -489,11 +506,14 @@ def _check_usage(parser, args) -> None:
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
     if args.command in ("triangulate", "observe-grid") and suffix != ".csv":
         parser.error(f"--out must be a .csv file; got {args.out}")
-    if args.command == "calibrate":
+    if args.command in ("calibrate", "calibrate-rig"):
         _check_format(parser, args, suffix)
-    if args.command == "calibrate" and args.format == "colmap":
-        if args.image_size is None:
+        if args.format == "colmap" and args.image_size is None:
             parser.error("--format colmap needs --image-size WIDTH HEIGHT")
+    if args.command == "calibrate-rig" and args.origin_frame is not None:
+        if args.reference != "target":
+            parser.error("--origin-frame chooses the world frame with --reference target")
+    if args.command == "calibrate" and args.format == "colmap":
         if not args.refine and args.distortion is None:
             parser.error(
                 "--format colmap needs --refine or --distortion (COLMAP's cameras have no "
@@ -539,8 +559,9 @@ def _check_writable(parser, flag: str, path: pathlib.Path) -> None:
 
 
 def _check_format(parser, args, suffix: str) -> None:
-    """`calibrate`'s --format, from --out's suffix where not given; a file whose suffix says
-    another format is a usage error (a JSON rig in `rig.txt` was written silently)."""
+    """`calibrate`'s and `calibrate-rig`'s --format, from --out's suffix where not given; a file
+    whose suffix says another format is a usage error (a JSON rig in `rig.txt` was written
+    silently, and `calibrate-rig --out rig.yml` wrote JSON)."""
     if args.format is None:
         if suffix not in _FORMATS:
             parser.error(
@@ -725,35 +746,43 @@ def _calibrate(args) -> int:
     print(format_table(result.report, status=words, names=data.cameras))
     if note := mirror_note(result, data.cameras):
         print(note)
-    out = pathlib.Path(args.out)
-    if args.format == "json":
-        meta = {"correspondences": str(args.correspondences), "refined": refine is not False}
-        if refine is not False:
-            meta["distortion"] = list(refine.get("distortion", ("k1", "k2", "p1", "p2")))
-        io.save_json(
-            out, result.cameras, names=data.cameras, status=status, rms=result.report.rms, meta=meta
-        )
-        written = C
-    else:
-        keep = np.flatnonzero(ok)
-        if not keep.size:
-            raise _Failed(f"no camera could be calibrated; {out} not written.")
-        cameras, names = result.cameras[keep], [data.cameras[i] for i in keep]
-        if args.format == "opencv":
-            io.save_opencv(
-                out, cameras, names=_unique(map(_identifier, names)), image_size=args.image_size
-            )
-        else:
-            io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
-        written = len(keep)
+    meta = {"correspondences": str(args.correspondences), "refined": refine is not False}
+    if refine is not False:
+        meta["distortion"] = list(refine.get("distortion", ("k1", "k2", "p1", "p2")))
+    written = _write_rig(args, result.cameras, data.cameras, status, result.report.rms, meta)
     print()
     for i in np.flatnonzero(~ok):
         print(f"{data.cameras[i]}: {Status(int(status[i])).message}")
     print(
         f"{int(ok.sum())} of {C} cameras calibrated; {_count(written, 'camera')} written to "
-        f"{out} ({args.format})"
+        f"{args.out} ({args.format})"
     )
     return 0 if ok.all() else 1
+
+
+def _write_rig(args, cameras, names, status, rms, meta) -> int:
+    """The rig to `args.out` in `args.format`: JSON holds every camera with its status, RMS and
+    `meta`; OpenCV's YAML and COLMAP's model the calibrated ones. Returns how many were written."""
+    import numpy as np
+
+    from . import io
+    from ._status import Status
+
+    out = pathlib.Path(args.out)
+    if args.format == "json":
+        io.save_json(out, cameras, names=names, status=status, rms=rms, meta=meta)
+        return len(names)
+    keep = np.flatnonzero(np.asarray(status) == Status.OK)
+    if not keep.size:
+        raise _Failed(f"no camera could be calibrated; {out} not written.")
+    cameras, names = cameras[keep], [names[i] for i in keep]
+    if args.format == "opencv":
+        io.save_opencv(
+            out, cameras, names=_unique(map(_identifier, names)), image_size=args.image_size
+        )
+    else:
+        io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
+    return len(keep)
 
 
 def _unique(names) -> list[str]:
@@ -772,7 +801,7 @@ def _unique(names) -> list[str]:
 def _calibrate_rig(args) -> int:
     import numpy as np
 
-    from . import _validate, io
+    from . import _validate
     from ._camera import LENSES
     from ._refine import GROUPS, Huber
     from ._rig import calibrate_rig
@@ -818,6 +847,15 @@ def _calibrate_rig(args) -> int:
             f"--reference {args.reference!r} is neither a camera index (0 to {C - 1}), a camera "
             "name nor 'target'."
         )
+    origin_frame = None
+    if args.origin_frame is not None:
+        found = np.flatnonzero(np.asarray(obs.frames) == args.origin_frame)
+        if not found.size:
+            raise ValueError(
+                f"--origin-frame {args.origin_frame}: no frame of that id in "
+                f"{args.observations} (its frames are {obs.frames[0]} to {obs.frames[-1]})."
+            )
+        origin_frame = int(found[0])
     say("calibrating the rig: closed form, then Levenberg-Marquardt (the first run compiles)")
     result = calibrate_rig(
         obs.target,
@@ -827,6 +865,7 @@ def _calibrate_rig(args) -> int:
         fix=args.fix,
         distortion=args.distortion,
         reference=reference,
+        origin_frame=origin_frame,
         loss=None if args.huber is None else Huber(args.huber),
         verbose=not args.quiet,
         **(dict(lens="fisheye", image_size=args.image_size) if args.fisheye else {}),
@@ -835,6 +874,9 @@ def _calibrate_rig(args) -> int:
     ok = status == Status.OK
     print(result)
     print("cameras: " + ", ".join(f"{c} = {name}" for c, name in enumerate(obs.cameras)))
+    origin = None if result.origin_frame is None else int(obs.frames[result.origin_frame])
+    if origin is not None:
+        print(f"frame {result.origin_frame} is frame {origin} of {args.observations}")
 
     def number(x):
         return float(x) if np.isfinite(x) else None
@@ -845,6 +887,7 @@ def _calibrate_rig(args) -> int:
         "fix": list(args.fix),
         "distortion": [n for n in result.parameter_names if n in LENSES[result.cameras.lens]],
         "reference": reference,
+        "origin_frame": origin,
         "loss": None if args.huber is None else {"huber": args.huber},
         "rms": number(result.rms),
         "rms_observed": number(result.rms_observed),
@@ -854,9 +897,7 @@ def _calibrate_rig(args) -> int:
         "position_std": [[number(v) for v in row] for row in np.asarray(result.position_std)],
         "rotation_std_deg": [[number(v) for v in row] for row in np.asarray(result.rotation_std)],
     }
-    io.save_json(
-        args.out, result.cameras, names=obs.cameras, status=status, rms=result.camera_rms, meta=meta
-    )
+    written = _write_rig(args, result.cameras, obs.cameras, status, result.camera_rms, meta)
     print()
     for i in np.flatnonzero(~ok):
         print(f"{obs.cameras[i]}: {Status(int(status[i])).message}")
@@ -866,7 +907,10 @@ def _calibrate_rig(args) -> int:
         f"{float(result.rms_observed):.4f} px ({int(np.asarray(result.used).sum())} used in the "
         f"fit: RMS {float(result.rms):.4f} px)"
     )
-    print(f"{int(ok.sum())} of {C} cameras calibrated; rig written to {args.out}")
+    print(
+        f"{int(ok.sum())} of {C} cameras calibrated; {_count(written, 'camera')} written to "
+        f"{args.out} ({args.format})"
+    )
     if args.plot:
         say("drawing the figure")
         poses = result.target_poses

@@ -3,6 +3,8 @@
 (../shared/data/SOURCE.md, section 6), the flags reaching `calibrate_rig`, and one-line
 failures."""
 
+import dataclasses
+import functools
 import json
 import re
 
@@ -55,7 +57,7 @@ def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off
     stdout, stderr = capsys.readouterr()
     assert f"read 4 cameras, 40 frames, 108 target points, {observations.mask.sum()} " in stderr
     assert "calibrate_rig: RMS" in stderr  # the library's stage timings, as progress
-    assert "4 of 4 cameras calibrated; rig written to" in stdout
+    assert "4 of 4 cameras calibrated; 4 cameras written to" in stdout
     assert "rig of 4 cameras, 40 frames" in stdout and "cameras: 0 = cam a, 1 = cam b" in stdout
 
     cameras, names = mc.io.load_json(out)
@@ -78,6 +80,46 @@ def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off
     picture = iio.imread(figure)
     assert picture.shape[1] > 1000 and picture[..., :3].std() > 10  # something drawn
     assert f"figure written to {figure}" in stdout
+
+
+def test_opencv_yaml_and_the_world_on_the_board_of_a_frame_id(tmp_path, capsys, cache_off):
+    """`--out rig.yml` writes OpenCV's YAML (it wrote JSON under that name), and
+    `--reference target --origin-frame ID` puts the world on the board of the frame with that id
+    in the file (ids 100 on here, not indices): the cameras where the truth puts them in that
+    board's frame, as `calibrate_rig(..., origin_frame=index)` does."""
+    rig, observations = _observations(40)
+    observations = dataclasses.replace(observations, frames=observations.frames + 100)
+    path = mc.io.save_observations(tmp_path / "obs.csv", observations)
+    f = int(np.argmax(observations.mask.any(-1).sum(0) == 2))  # a frame two cameras saw
+    out = tmp_path / "rig.yml"
+    args = ["--reference", "target", "--origin-frame", 100 + f, "--quiet"]
+    assert _main("calibrate-rig", path, "--out", out, *args) == 0
+    stdout = capsys.readouterr().out
+    assert f"frame {f} is frame {100 + f} of {path}" in stdout and "(opencv)" in stdout
+    assert out.read_text().startswith("%YAML:1.0")
+    cameras, names = mc.io.load_opencv(out)
+    assert names == [n.replace(" ", "_") for n in NAMES]
+    truth = np.asarray(rig.poses[f].inverse().apply(rig.cameras.center))  # in that board's
+    assert np.abs(np.asarray(cameras.center) - truth).max() < 0.02  # metres
+    python = mc.calibrate_rig(observations.target, observations.pixels, observations.mask,
+                              reference="target", origin_frame=f)  # fmt: skip
+    assert python.origin_frame == f and f"world frame: the target in frame {f}" in str(python)
+    np.testing.assert_allclose(cameras.center, python.cameras.center, rtol=1e-6, atol=1e-9)
+
+
+def test_origin_frame_is_an_index_of_a_frame_and_needs_the_target_as_reference():
+    """A frame id from the file was clamped by JAX's indexing to the last frame: the world on
+    another board pose, without a word; the argument without `reference="target"` was ignored."""
+    rig, observations = _observations(3)
+    call = functools.partial(mc.calibrate_rig, rig.target, rig.pixels, rig.mask)
+    with pytest.raises(ValueError, match=r"frame axis of `pixels`, 0 to 2; got 3\."):
+        call(reference="target", origin_frame=3)
+    with pytest.raises(ValueError, match="0 to 2; got -1"):
+        call(reference="target", origin_frame=-1)
+    with pytest.raises(TypeError, match="a frame's index, an int; got 1.0"):
+        call(reference="target", origin_frame=1.0)
+    with pytest.raises(ValueError, match="with `reference='target'`; got reference=0"):
+        call(origin_frame=1)
 
 
 # ---------------------------------------------------------------------------- caliscope
@@ -131,8 +173,8 @@ def test_flags_reach_calibrate_rig(tmp_path, capsys, cache_off, monkeypatch):
     (shape, plain), (_, robust), (_, started) = seen
     assert shape == (4, 3, 108, 2)
     # (distortion None: the lens's default, k1 k2 p1 p2 of a pinhole, k1..k4 of a fisheye)
-    assert plain == dict(cameras=None, fix=(), distortion=None,
-                         reference=0, loss=None, verbose=False)  # fmt: skip
+    assert plain == dict(cameras=None, fix=(), distortion=None, reference=0,
+                         origin_frame=None, loss=None, verbose=False)  # fmt: skip
     assert robust["loss"] == mc.Huber(2.0) and robust["reference"] == "target"
     assert robust["distortion"] == ("k1", "k2")
     assert started["reference"] == 2 and started["fix"] == ("intrinsics", "k3")
@@ -184,6 +226,12 @@ RIG = ["calibrate-rig", "obs.csv", "--out", "r.json"]
         ([*RIG, "--distortion", "k9"], "'k9' is not one of"),
         (["calibrate-rig", "corr.csv", "--out", "r.json"], "corr.csv:1: "),
         (["calibrate-rig", "four.json", "--out", "r.json"], "four.json:1: "),
+        (["calibrate-rig", "obs.csv", "--out", "r.txt"], "--out r.txt: a .json or .yml/.yaml"),
+        ([*RIG, "--format", "colmap"], "--format colmap needs --image-size"),
+        ([*RIG, "--format", "opencv"], "--format opencv writes a .yml or .yaml file"),
+        ([*RIG, "--origin-frame", "2"], "--origin-frame chooses the world frame with --reference"),
+        ([*RIG, "--reference", "target", "--origin-frame", "9"],
+         "--origin-frame 9: no frame of that id in obs.csv (its frames are 0 to 2)"),
     ],
 )  # fmt: skip
 def test_failures_are_one_line_and_exit_code_2(files, capsys, args, message):
