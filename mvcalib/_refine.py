@@ -414,7 +414,9 @@ class Refinement(eqx.Module):
     - `inliers`: `(..., N)` visible points whose final residual is within 3 `loss.scale` (all
       visible points without a robust loss).
     - `covariance`: `(..., P, P)` covariance of the parameters named in `parameter_names` (the
-      free ones), from the Jacobian at the optimum scaled by the residual variance.
+      free ones), from the Jacobian at the optimum scaled by the residual variance (with a
+      robust loss, Huber's M-estimate of it, which the wild points' bounded pull enters and
+      their size does not: `residual_variance`).
     - `standard_errors`: `(..., P)` square roots of its diagonal; `std(name)` picks one.
     """
 
@@ -592,6 +594,31 @@ def _fisheye_columns(xc, dist):
     return X * scale, Y * scale, dxy_dc, [unit_x * q for q in powers], [unit_y * q for q in powers]
 
 
+def residual_variance(r, mask, loss, n_parameters):
+    """The variance `sigma^2` of a fit with `loss`, for its covariance `sigma^2 A^-1` (A the
+    Hessian of its cost as Gauss–Newton models it, `sum_i rho'(s_i) J_i^T J_i`).
+
+    For least squares `sum |r_i|^2 / (2 n - p)`. For a robust loss, Huber's M-estimate (Robust
+    Statistics, 1981, eq. 7.6.9) in that form: `sum |psi_i|^2 / (2 n - p) * mean(w) /
+    mean(psi')^2`, with `psi_i = rho'(s_i) r_i` a point's pull on the fit, `w_i = rho'(s_i)` its
+    weight in A and `psi'_i = rho'(s_i) + s_i rho''(s_i)` the mean slope of its pull (zero for
+    a point beyond Huber's scale, whose pull is constant). The cost over `2 n - p`, as before,
+    counted a wild point's `rho` (Huber: 2 scale |r|): standard errors 2-3 times the errors
+    with 5-10 % wild points (focal lengths of 200 cameras: std of the z-scores 0.3-0.4).
+
+    `r (..., N, 2)` the points' residuals, `mask (..., N)` those fitted."""
+    s = jnp.where(mask, jnp.sum(r * r, -1), 0.0)
+    if loss is None:
+        return jnp.sum(s) / jnp.maximum(2 * jnp.sum(mask) - n_parameters, 1)
+    flat = s.reshape(-1)
+    w = jax.vmap(jax.grad(loss.rho))(flat).reshape(s.shape)
+    slope = w + s * jax.vmap(jax.grad(jax.grad(loss.rho)))(flat).reshape(s.shape)
+    n = jnp.maximum(jnp.sum(mask), 1)
+    mean = lambda x: jnp.sum(jnp.where(mask, x, 0.0)) / n  # noqa: E731
+    pull = jnp.sum(jnp.where(mask, w * w * s, 0.0))
+    return pull / jnp.maximum(2 * n - n_parameters, 1) * mean(w) / mean(slope) ** 2
+
+
 def _irls(loss, s):
     """`(sqrt(rho'(s)), rho(s))` for squared residual lengths `s`: Gauss–Newton's model of a
     robust cost, as Ceres builds it for losses whose `rho'' <= 0` (Huber's, Cauchy's). A point's
@@ -724,20 +751,19 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     refined = _unpack(_parameters(y, p0, scale, free), cam.R)
 
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
-    # (robustly weighted) residuals at the optimum, in the parameters' own units.
+    # (robustly weighted) residuals at the optimum, in the parameters' own units; sigma^2 from
+    # the points' own residuals (`residual_variance`).
     held = (lambda y, args: model(y, args)[0]) if "model" in options else residuals  # noqa: E731
-    r, Jt = _at_optimum(held, jacobian_t, y, args, sol.state)
+    _, Jt = _at_optimum(held, jacobian_t, y, args, sol.state)
     Jt = Jt / scale[jnp.asarray(free), None]  # dr/dp, transposed
     n_obs = 2 * jnp.sum(mask)
-    dof = jnp.maximum(n_obs - len(free), 1)
-    sigma2 = jnp.sum(r * r) / dof
+    raw = jnp.where(mask[:, None], refined.project(world) - pixels, 0.0)
+    sigma2 = residual_variance(raw, mask, loss, len(free))
     H = Jt @ Jt.T
     cov = sigma2 * _definite_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
 
     rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
-    residual_length = jnp.linalg.norm(
-        jnp.where(mask[:, None], refined.project(world) - pixels, 0.0), axis=-1
-    )
+    residual_length = jnp.linalg.norm(raw, axis=-1)
     threshold = jnp.inf if loss is None else 3.0 * loss.scale
     inliers = mask & (residual_length <= threshold)
     enough = n_obs > len(free)

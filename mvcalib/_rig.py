@@ -69,6 +69,7 @@ from ._refine import (
     _unpack,
     check_loss,
     parameter_names,
+    residual_variance,
 )
 from ._registration import RigidTransform
 from ._rotation import exp_and_left_jacobian, nearest_rotation, rodrigues
@@ -178,6 +179,17 @@ class RigCalibration(eqx.Module):
         return _validate.derived(rms, self.residuals, self.observed)
 
     @property
+    def rms_inliers(self) -> Float[Array, ""]:
+        """The RMS over `inliers`: with a robust loss, what the fit makes of the observations it
+        believes (`rms` counts the wrong detections it discounted too); else `rms`."""
+
+        def rms(xp, residuals, inliers):
+            square = xp.sum(residuals**2, -1)
+            return xp.sqrt(xp.sum(xp.where(inliers, square, 0)) / xp.maximum(xp.sum(inliers), 1))
+
+        return _validate.derived(rms, self.residuals, self.inliers)
+
+    @property
     def n_skipped(self) -> Int[Array, ""]:
         return _validate.derived(lambda xp, s: xp.sum(s), self.skipped)
 
@@ -187,9 +199,12 @@ class RigCalibration(eqx.Module):
 
     def __str__(self) -> str:
         status = np.asarray(self.status)
-        rms, n = np.asarray(self.camera_rms), np.asarray(self.used).sum(axis=(1, 2))
-        frames = np.asarray(self.used).any(-1).sum(-1)
+        used, inliers = np.asarray(self.used), np.asarray(self.inliers)
+        rms, n = np.asarray(self.camera_rms), used.sum(axis=(1, 2))
+        frames = used.any(-1).sum(-1)
         pos = np.asarray(self.position_std)
+        # with a robust loss, the RMS of the observations it believes, beside the RMS of all
+        robust = bool((used != inliers).any())
         lines = [
             f"rig of {len(status)} cameras, {self.frame_rms.shape[0]} frames: RMS "
             f"{float(self.rms):.3f} px, {_RESULT_MESSAGES[int(self.result)]} after "
@@ -197,10 +212,22 @@ class RigCalibration(eqx.Module):
             "(too few points)",
             "camera  frames  points  rms (px)  centre std  status",
         ]
+        if robust:
+            lines.insert(
+                1,
+                f"inliers (within 3 scales of the loss): {int(inliers.sum())} of {int(used.sum())} "
+                f"observations, RMS {float(self.rms_inliers):.3f} px",
+            )
+            lines[-1] = "camera  frames  points  rms (px)  inliers  inlier rms  centre std  status"
+            square = np.sum(np.asarray(self.residuals) ** 2, -1)
+            k = inliers.sum(axis=(1, 2))
+            rms_in = np.sqrt(np.where(inliers, square, 0).sum(axis=(1, 2)) / np.maximum(k, 1))
         for c in range(len(status)):
+            columns = f"{c:>6}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
+            if robust:
+                columns += f"{k[c]:>7}  {rms_in[c]:>10.3f}  "
             lines.append(
-                f"{c:>6}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
-                f"{np.linalg.norm(pos[c]):>10.3g}  {Status(int(status[c])).name}"
+                columns + f"{np.linalg.norm(pos[c]):>10.3g}  {Status(int(status[c])).name}"
             )
         gauge = np.flatnonzero((status == Status.OK) & np.all(pos == 0, -1))
         if len(gauge) == 1:  # (the solve's reference: the others' errors are relative to it)
@@ -937,10 +964,12 @@ def _cameras_and_frames(y, args, free):
     return cams, RigidTransform(Rf, tf)
 
 
-def _uncertainty(y, args, n: _Normal, free):
+def _uncertainty(y, args, n: _Normal, residuals, *, free, loss):
     """Covariance of each camera's free parameters `sigma^2 S^-1` (S the reduced camera system
     at the solution, undamped, from the solver's last normal equations `n`; the frames'
-    uncertainty is in it), and the standard errors of each camera's centre and rotation."""
+    uncertainty is in it; `sigma^2` from the fitted points' `residuals` (C, F, N, 2) as
+    `residual_variance` has it for `loss`), and the standard errors of each camera's centre and
+    rotation."""
     C, P = n.gc.shape
     move_c, mask = args[3], args[10]
     V_inv = jax.vmap(lambda v: _scaled_solve(v, jnp.eye(6, dtype=v.dtype)))(n.V)
@@ -948,9 +977,7 @@ def _uncertainty(y, args, n: _Normal, free):
         C * P, C * P
     )
     n_parameters = jnp.sum(move_c) + 6 * jnp.sum(args[6])
-    dof = jnp.maximum(2 * jnp.sum(mask) - n_parameters, 1)
-    pin_c, pin_f = _pinned(y, args)
-    sigma2 = (n.cost - jnp.sum(pin_c**2) - jnp.sum(pin_f**2)) / dof
+    sigma2 = residual_variance(residuals, mask, loss, n_parameters)
     cov_all = sigma2 * _scaled_solve(S, jnp.eye(C * P, dtype=S.dtype)).reshape(C, P, C, P)
     cov = jnp.einsum("cpcq->cpq", cov_all) * move_c[:, :, None] * move_c[:, None, :]
     p0, R0, scale = args[:3]
@@ -1026,9 +1053,6 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         max_steps,
     )
     cams, poses = _cameras_and_frames(y, args, free)
-    cov, std, (position_std, rotation_std) = _uncertainty(
-        *jax.lax.stop_gradient((y, args, normal)), free
-    )
     # the report, from the unweighted residuals
     project = jax.vmap(
         lambda cam, R, t: cam.project(jnp.einsum("fij,nj->fni", R, target) + t[:, None]),
@@ -1037,6 +1061,9 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
     # every observation of a calibrated camera in a frame with a pose, the skipped ones too
     observed = observed & ok[:, None, None] & frame_ok[None, :, None]
     residuals = jnp.where(observed[..., None], project(cams, poses.R, poses.t) - pixels, 0.0)
+    cov, std, (position_std, rotation_std) = _uncertainty(
+        *jax.lax.stop_gradient((y, args, normal, residuals)), free=free, loss=loss
+    )
     square = jnp.sum(jnp.where(used[..., None], residuals, 0.0) ** 2, -1)
     rms = jnp.sqrt(jnp.sum(square) / jnp.maximum(jnp.sum(used), 1))
     camera_rms = jnp.sqrt(jnp.sum(square, (1, 2)) / jnp.sum(used, (1, 2)))
