@@ -892,6 +892,8 @@ def _calibrate_rig(args) -> int:
         "loss": None if args.huber is None else {"huber": args.huber},
         "rms": number(result.rms),
         "rms_observed": number(result.rms_observed),
+        "rms_inliers": number(result.rms_inliers),
+        "n_inliers": int(np.asarray(result.inliers).sum()),
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
         "n_skipped": int(result.n_skipped),
@@ -908,6 +910,12 @@ def _calibrate_rig(args) -> int:
         f"{float(result.rms_observed):.4f} px ({int(np.asarray(result.used).sum())} used in the "
         f"fit: RMS {float(result.rms):.4f} px)"
     )
+    if args.huber is not None:
+        print(
+            f"inliers of the Huber loss (within {3 * args.huber:g} px): "
+            f"{_count(int(np.asarray(result.inliers).sum()), 'observation')}, RMS "
+            f"{float(result.rms_inliers):.4f} px"
+        )
     print(
         f"{int(ok.sum())} of {C} cameras calibrated; {_count(written, 'camera')} written to "
         f"{args.out} ({args.format})"
