@@ -91,7 +91,7 @@ def plot_rig(
 
     - `cameras`: the rig (a `Camera` with a camera axis, or one camera).
     - `world`: optional `(P, 3)` points to draw (the target).
-    - `names`: a label per camera (default `1, 2, ...`).
+    - `names`: a label per camera (default its index, `0, 1, ...`, as the tables number cameras).
     - `ax`: a 3-D matplotlib axes to draw on (default: a new figure's).
     - `image_size`: `(width, height)` for the frusta's far rectangles; default from the
       principal point.
@@ -115,7 +115,7 @@ def plot_rig(
     """
     rig = _host(cameras)
     C = len(rig.u0)
-    names = [str(i + 1) for i in range(C)] if names is None else [str(s) for s in names]
+    names = [str(i) for i in range(C)] if names is None else [str(s) for s in names]
     if ax is None:
         ax = require_matplotlib()(figsize=(6, 5)).add_subplot(projection="3d")
     # NumPy rather than the Camera's JAX methods: a figure needs no compiled code.
@@ -239,7 +239,7 @@ def plot_residuals(
     rig = _host(cameras)
     residuals, pixels, mask = _residuals(rig, world, pixels, mask)
     C = len(rig.u0)
-    names = [str(i + 1) for i in range(C)] if names is None else [str(s) for s in names]
+    names = [str(i) for i in range(C)] if names is None else [str(s) for s in names]
     sizes = _image_sizes(rig, image_size, np.where(mask[..., None], pixels, np.nan))
     if axes is None:
         cols = min(C, 4)
@@ -380,9 +380,9 @@ def report_figure(
     rig = _host(cameras)
     C = len(rig.u0)
     if names is None:
-        names = [f"camera {i + 1}" for i in range(C)]
+        names = [f"camera {i}" for i in range(C)]
     else:
-        names = [f"{i + 1}: {_short(str(n))}" for i, n in enumerate(names)]
+        names = [f"{i}: {_short(str(n))}" for i, n in enumerate(names)]
     shown = min(C, max_cameras)
     cols = min(max(shown, 3), 5) if shown else 3
     rows = -(-shown // cols)
@@ -391,7 +391,7 @@ def report_figure(
     grid = top.add_gridspec(2, 2, width_ratios=[1.3, 1])
     rig_ax = top.add_subplot(grid[:, 0], projection="3d")
     world_points = np.asarray(world, dtype=float).reshape(-1, 3)
-    numbers = [str(i + 1) for i in range(C)]  # names would crowd the 3-D view
+    numbers = [str(i) for i in range(C)]  # (as the tables number them) names would crowd it
     plot_rig(rig, np.unique(world_points, axis=0), names=numbers, ax=rig_ax, image_size=image_size)
     rig_ax.view_init(elev=25, azim=-60)
     plot_histograms(
