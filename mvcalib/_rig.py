@@ -109,6 +109,20 @@ OWN_FRAMES = 128
 
 
 # ------------------------------------------------------------------------------ the result
+class SolveFailed(ValueError):
+    """`calibrate_rig`'s joint solve left every camera POOR_FIT."""
+
+    def __init__(self, rms: float, iterations: int):
+        self.rms, self.iterations = rms, iterations
+        super().__init__(
+            "the rig's joint solve failed: every camera reprojects its points with an RMS above "
+            f"`max_relative_rms` of their spread (RMS {rms:.3g} px after {iterations} steps). "
+            "Check that the detections match the target's points (ids, order, units); for wrong "
+            "detections, a robust `loss=mc.Huber(2.0)` (or `mc.Cauchy(2.0)` for many); or start "
+            "from known `cameras=`."
+        )
+
+
 class RigCalibration(eqx.Module):
     """The result of `calibrate_rig`.
 
@@ -1390,12 +1404,7 @@ def calibrate_rig(
         )
         statuses = np.asarray(result.status) if concrete else None
         if concrete and (statuses == Status.POOR_FIT).all():
-            raise ValueError(
-                f"the rig's joint solve failed: every camera reprojects its points with an RMS "
-                f"above `max_relative_rms` of their spread (RMS {float(result.rms):.3g} px after "
-                f"{int(result.iterations)} steps). Check that the detections match the target's "
-                "points (ids, order, units), or start from known `cameras=`."
-            )
+            raise SolveFailed(float(result.rms), int(result.iterations))
         if concrete and (status := int(statuses[solve_reference])) != Status.OK:
             why = Status(status).message
             if planar and status == Status.DEGENERATE:  # (the DLT's words are for 3-D points)

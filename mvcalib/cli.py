@@ -266,8 +266,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --reference target: the frame (its id in the observations file) whose "
         "target pose is the world, e.g. the board lying on the floor",
     )
-    rig.add_argument(
-        "--huber", type=float, metavar="PX", help="Huber loss of this scale (pixels) for outliers"
+    robust = rig.add_mutually_exclusive_group()
+    robust.add_argument(
+        "--huber",
+        type=float,
+        metavar="PX",
+        help="Huber loss of this scale (pixels) for wrong detections, e.g. 2",
+    )
+    robust.add_argument(
+        "--cauchy",
+        type=float,
+        metavar="PX",
+        help="Cauchy loss of this scale (pixels): for more wrong detections than Huber's takes "
+        "(5 %% moved tens of pixels), e.g. 2",
     )
     rig.add_argument(
         "--plot", metavar="PNG", help="a figure of the rig and its residuals (.png, .pdf, .svg)"
@@ -525,8 +536,10 @@ def _check_usage(parser, args) -> None:
         parser.error("--min-angle must be non-negative")
     if args.command == "triangulate" and not args.max_rms > 0:
         parser.error("--max-rms must be positive")
-    if args.command == "calibrate-rig" and args.huber is not None and not args.huber > 0:
-        parser.error("--huber must be positive")
+    for loss in ("huber", "cauchy"):
+        if args.command == "calibrate-rig" and getattr(args, loss) is not None:
+            if not getattr(args, loss) > 0:
+                parser.error(f"--{loss} must be positive")
     if (
         args.command == "calibrate-rig"
         and args.fisheye
@@ -803,8 +816,8 @@ def _calibrate_rig(args) -> int:
 
     from . import _validate
     from ._camera import LENSES
-    from ._refine import GROUPS, Huber
-    from ._rig import calibrate_rig
+    from ._refine import GROUPS, Cauchy, Huber
+    from ._rig import SolveFailed, calibrate_rig
     from ._status import Status
 
     say = _progress(args)
@@ -856,20 +869,33 @@ def _calibrate_rig(args) -> int:
                 f"{args.observations} (its frames are {obs.frames[0]} to {obs.frames[-1]})."
             )
         origin_frame = int(found[0])
+    loss, loss_name = None, None
+    if args.huber is not None:
+        loss, loss_name = Huber(args.huber), "huber"
+    elif args.cauchy is not None:
+        loss, loss_name = Cauchy(args.cauchy), "cauchy"
     say("calibrating the rig: closed form, then Levenberg-Marquardt (the first run compiles)")
-    result = calibrate_rig(
-        obs.target,
-        obs.pixels,
-        obs.mask,
-        cameras=cameras,
-        fix=args.fix,
-        distortion=args.distortion,
-        reference=reference,
-        origin_frame=origin_frame,
-        loss=None if args.huber is None else Huber(args.huber),
-        verbose=not args.quiet,
-        **(dict(lens="fisheye", image_size=args.image_size) if args.fisheye else {}),
-    )
+    try:
+        result = calibrate_rig(
+            obs.target,
+            obs.pixels,
+            obs.mask,
+            cameras=cameras,
+            fix=args.fix,
+            distortion=args.distortion,
+            reference=reference,
+            origin_frame=origin_frame,
+            loss=loss,
+            verbose=not args.quiet,
+            **(dict(lens="fisheye", image_size=args.image_size) if args.fisheye else {}),
+        )
+    except SolveFailed as error:  # (the library's words are Python's)
+        raise _Failed(
+            f"the rig's joint solve failed: every camera reprojects its points with an RMS of "
+            f"{error.rms:.3g} px after {error.iterations} steps. Check that the detections match "
+            "the target's points (ids, order, units); for wrong detections, --huber 2 (or "
+            "--cauchy 2 for many); or start from known cameras with --intrinsics."
+        ) from None
     status = np.asarray(result.status)
     ok = status == Status.OK
     print(result)
@@ -889,7 +915,7 @@ def _calibrate_rig(args) -> int:
         "distortion": [n for n in result.parameter_names if n in LENSES[result.cameras.lens]],
         "reference": reference,
         "origin_frame": origin,
-        "loss": None if args.huber is None else {"huber": args.huber},
+        "loss": None if loss is None else {loss_name: loss.scale},
         "rms": number(result.rms),
         "rms_observed": number(result.rms_observed),
         "rms_inliers": number(result.rms_inliers),
@@ -910,9 +936,9 @@ def _calibrate_rig(args) -> int:
         f"{float(result.rms_observed):.4f} px ({int(np.asarray(result.used).sum())} used in the "
         f"fit: RMS {float(result.rms):.4f} px)"
     )
-    if args.huber is not None:
+    if loss is not None:
         print(
-            f"inliers of the Huber loss (within {3 * args.huber:g} px): "
+            f"inliers of the {type(loss).__name__} loss (within {3 * loss.scale:g} px): "
             f"{_count(int(np.asarray(result.inliers).sum()), 'observation')}, RMS "
             f"{float(result.rms_inliers):.4f} px"
         )

@@ -169,8 +169,12 @@ def test_flags_reach_calibrate_rig(tmp_path, capsys, cache_off, monkeypatch):
     assert _main(*base, "--huber", "2", "--reference", "target", "--distortion", "k1,k2") == 2
     assert _main(*base, "--reference", "cam c", "--intrinsics", tmp_path / "start.json",
                  "--fix", "intrinsics, k3") == 2  # fmt: skip
-    assert capsys.readouterr().err.count("mvcalib: error: spied") == 3
-    (shape, plain), (_, robust), (_, started) = seen
+    assert _main(*base, "--cauchy", "1.5") == 2
+    assert capsys.readouterr().err.count("mvcalib: error: spied") == 4
+    assert _main(*base, "--cauchy", "1.5", "--huber", "2") == 2  # one loss
+    assert "not allowed with argument" in capsys.readouterr().err
+    (shape, plain), (_, robust), (_, started), (_, cauchy) = seen
+    assert cauchy["loss"] == mc.Cauchy(1.5)
     assert shape == (4, 3, 108, 2)
     # (distortion None: the lens's default, k1 k2 p1 p2 of a pinhole, k1..k4 of a fisheye)
     assert plain == dict(cameras=None, fix=(), distortion=None, reference=0,
@@ -204,6 +208,28 @@ def test_intrinsics_are_matched_by_name_or_in_an_announced_order(tmp_path, capsy
         np.testing.assert_array_equal(cameras.K, rig.cameras.K)  # each camera its own
         meta = json.loads(out.read_text())["meta"]
         assert meta["intrinsics_cameras"] == (["a", "b", "c", "d"] if note else NAMES)
+
+
+def test_a_failed_joint_solve_says_what_to_try_in_the_command_line(tmp_path, capsys, cache_off):
+    """1 % of the corners wild without a robust loss: every camera POOR_FIT. The library's
+    words (`max_relative_rms`, `cameras=`) are Python's; the command line names its own flags,
+    and exits 1 (the work failed) rather than 2 (bad usage)."""
+    rig, observations = _observations(40)
+    pixels, mask = observations.pixels.copy(), observations.mask
+    where = np.argwhere(mask)
+    wild = where[np.random.default_rng(0).choice(len(where), len(where) // 100, replace=False)]
+    pixels[tuple(wild.T)] += 300.0
+    wild_obs = dataclasses.replace(observations, pixels=pixels)
+    path = mc.io.save_observations(tmp_path / "wild.csv", wild_obs)
+    with pytest.raises(mc._rig.SolveFailed, match=r"loss=mc.Huber\(2.0\)"):
+        mc.calibrate_rig(wild_obs.target, np.nan_to_num(pixels), mask)
+    assert _main("calibrate-rig", path, "--out", tmp_path / "r.json", "--quiet") == 1
+    err = capsys.readouterr().err
+    assert "for wrong detections, --huber 2 (or --cauchy 2 for many)" in err
+    assert "max_relative_rms" not in err and len(err.strip().splitlines()) == 1
+    assert _main("calibrate-rig", path, "--out", tmp_path / "r.json", "--huber", "2",
+                 "--quiet") == 0  # fmt: skip
+    assert "inliers of the Huber loss (within 6 px)" in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------------------- failures
