@@ -39,6 +39,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from . import _validate
+
 # The least camera-points a program covers: below it, running costs next to nothing (the DLT of
 # 64 cameras of 64 points takes ~0.2 ms) against the seconds a new program takes to compile.
 WORK = 64 * 64
@@ -61,8 +63,11 @@ def cameras_and_points(n_cameras: int, n_points: int) -> tuple[int, int]:
 
 
 def applies(*trees) -> bool:
-    """Whether a call with these arguments may pad: every array concrete, and none split over
-    several devices (whose layout the caller chose; `mvcalib.shard`)."""
+    """Whether a call with these arguments may pad: every array concrete (`is_concrete`: also
+    no trace under way), and none split over several devices (whose layout the caller chose;
+    `mvcalib.shard`)."""
+    if not _validate.is_concrete():
+        return False
     for x in jax.tree_util.tree_leaves(trees):
         if isinstance(x, jax.core.Tracer):
             return False

@@ -1280,7 +1280,7 @@ def calibrate_rig(
     if lens is not None:
         check_lens(lens)
     check_loss(loss)
-    if not _validate.is_concrete(target):
+    if isinstance(target, jax.core.Tracer):
         raise ValueError(
             "`target` must be concrete (its plane is found from its values): inside jax.jit, "
             "close over it rather than pass it as an argument."

@@ -18,8 +18,20 @@ import numpy as np
 MIN_POINTS = 6  # a 3x4 projection matrix has 11 degrees of freedom; each point gives 2 equations
 
 
+try:  # (JAX's own test of being inside a trace; without it, tracers alone tell)
+    from jax._src.core import trace_state_clean as _outside_traces
+except ImportError:  # pragma: no cover
+
+    def _outside_traces() -> bool:
+        return True
+
+
 def is_concrete(*arrays) -> bool:
-    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+    """Whether `arrays` hold values here: none is a tracer and no trace is under way. Arrays that
+    a user's jitted function closes over are concrete, but what is computed from them there is
+    traced: `jax.jit(lambda x: mc.calibrate(W, P, M).cameras.alpha_u * x)` with W, P, M JAX
+    arrays took the eager path and failed on a traced result."""
+    return _outside_traces() and not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
 def derived(fn, *arrays):

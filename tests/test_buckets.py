@@ -335,3 +335,24 @@ def test_rigs_of_other_sizes_reuse_the_joint_refinement(caplog, kind):
             out.world, alone.world, rtol=0, atol=1e-7 * np.abs(args[1]).max()
         )
         np.testing.assert_allclose(out.transform.t, alone.transform.t, atol=1e-7 * scale)
+
+
+def test_calls_inside_a_users_trace_on_arrays_it_closes_over():
+    """Arrays a jitted function closes over are concrete, but what is computed from them there is
+    traced: these calls took the eager path (padding, checks on the host) and raised JAX's
+    TracerArrayConversionError or ConcretizationTypeError (a JAX user's trial). The answers equal
+    the eager calls' (to the solvers' tolerance: the eager ones are padded)."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=4, noise=0.3)
+    W, P, M = rig.world, rig.pixels, rig.mask
+    eager = mc.calibrate(W, P, M)
+    alpha = jax.jit(lambda x: mc.calibrate(W, P, M).cameras.alpha_u * x)(1.0)
+    np.testing.assert_allclose(alpha, eager.cameras.alpha_u, rtol=1e-12)
+    refined = mc.refine(eager.cameras, W, P, M, loss=mc.Huber(1.0))
+    traced = jax.jit(lambda s, c: mc.refine(s, W, P, M, loss=mc.Huber(c)).cameras.alpha_u)
+    np.testing.assert_allclose(traced(eager.cameras, 1.0), refined.cameras.alpha_u, rtol=1e-5)
+    board = mc.synthetic.board_rig(jax.random.key(0), n_cameras=3, n_frames=20, noise=0.3)
+    T, BP, BM = board.target, board.pixels, board.mask
+    start = mc.calibrate_rig(T, BP, BM)
+    held = mc.calibrate_rig(T, BP, BM, cameras=start.cameras, fix="intrinsics")
+    on = jax.jit(lambda c: mc.calibrate_rig(T, BP, BM, cameras=c, fix="intrinsics").cameras.t)
+    np.testing.assert_allclose(on(start.cameras), held.cameras.t, rtol=1e-5, atol=1e-9)
