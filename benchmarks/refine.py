@@ -12,11 +12,12 @@ skew and k3 = 0 held fixed). The problems of C = 16 and 64 cameras are the first
 
 - **mvcalib**: the public `mvcalib.refine(seed, world, pixels, mask)` with its defaults
   (`mvcalib.SecantLM` driven by `optimistix.least_squares`, steps down to 1e-5 standard errors,
-  one problem per camera, vmapped across the rig in chunks of `mvcalib._refine.CHUNK` cameras on
-  a CPU), wrapped in one `jax.jit` so that validation, solve and report are one compiled call
-  (whose memory XLA can analyse). It is compiled once per rig size by a warm-up call, whose wall
-  time is reported separately ("1st call": trace + compile + one run; compile = 1st call - warm
-  call). Every timed call ends with `jax.block_until_ready` on the returned `Refinement`.
+  one problem per camera, solved one camera after another on one CPU device
+  (`mvcalib._refine.one_per_step`), vmapped across the rig elsewhere), wrapped in one `jax.jit`
+  so that validation, solve and report are one compiled call (whose memory XLA can analyse). It
+  is compiled once per rig size by a warm-up call, whose wall time is reported separately ("1st
+  call": trace + compile + one run; compile = 1st call - warm call). Every timed call ends
+  with `jax.block_until_ready` on the returned `Refinement`.
   Besides the optimum, each call also computes the per-camera covariance of the parameters and
   the reprojection report, which the SciPy loop does not.
 - **scipy lm / scipy trf**: a Python loop over the cameras calling
@@ -43,10 +44,10 @@ points)) at the end of each method should be the same minimum; the table gives t
 relative difference over the cameras between mvcalib and each SciPy method, and the JSON holds
 the per-camera RMS, iterations and statuses of the 256-camera rig. Iterations: mvcalib's LM steps
 (`Refinement.iterations`); SciPy's Jacobian evaluations (`njev`, one per accepted step for "lm").
-Under `vmap` a batched solve runs until its slowest camera has converged, so mvcalib's time
-follows the maximum of its iterations over each chunk, not their mean: the third table sets the
-camera-steps the chunks pay (the sum over chunks of chunk size x its max steps) against the loop's
-(the sum of `njev`), and gives the time per camera-step of each.
+On one CPU device mvcalib solves one camera after another, each for its own steps (under `vmap`,
+on an accelerator, a batch runs until its slowest camera has converged): the third table sets the
+camera-steps mvcalib pays (the sum of its steps; the batch's size x its max steps under `vmap`)
+against the loop's (the sum of `njev`), and gives the time per camera-step of each.
 
 Peak memory: XLA's memory analysis of mvcalib's compiled call (arguments + outputs +
 temporaries); `tracemalloc`'s peak during a SciPy loop over 16 cameras (the loop's peak is one
@@ -291,9 +292,9 @@ def bench_one(problem, C, *, quick):
         row[f"ratio_scipy_{method}_over_mvcalib"] = (
             stats[f"scipy_{method}"]["median"] / stats["mvcalib"]["median"]
         )
-    # Cost per step: the vmapped solve runs every camera for the batch's largest number of
-    # steps; the loop pays each camera's own. Their ratio explains most of the time ratio.
-    chunk = mc._refine._chunk_size(C) or C  # noqa: SLF001 (how the solve is batched)
+    # Cost per step: a vmapped solve runs every camera for the batch's largest number of steps;
+    # one camera per step (on one CPU device) and the loop pay each camera's own.
+    chunk = 1 if mc._refine.one_per_step(C) else C  # noqa: SLF001 (how the solve is batched)
     steps = np.asarray(out.iterations)
     batched_steps = int(sum(len(s) * s.max() for s in np.split(steps, range(chunk, C, chunk))))
     row["mvcalib_batched_camera_steps"] = batched_steps
@@ -374,7 +375,7 @@ def print_table(rows, jacobian_error):
             f"{r['scipy_trf_us_per_njev']:>8.0f}"
         )
     print()
-    print("mvcalib:    mc.refine (SecantLM, chunks of vmapped cameras; also covariance, report),")
+    print("mvcalib:    mc.refine (SecantLM, a camera at a time on a CPU; also covariance, report),")
     print("            median wall time per call, per camera and in total.")
     print("lm, trf:    Python loop of scipy.optimize.least_squares(method=..., x_scale='jac',")
     print("            tol 1e-12) on cv2.projectPoints residuals with its analytic Jacobian")
@@ -392,8 +393,8 @@ def print_table(rows, jacobian_error):
         f"parameters: mvcalib and SciPy agree to {worst('alpha_u_max_rel_diff'):.0e} in alpha_u "
         f"(relative)\n            and {worst('k1_max_abs_diff'):.0e} in k1 (absolute), at worst."
     )
-    print("steps:      under vmap each camera of a chunk runs as many steps as its slowest one, so")
-    print("            the chunks pay their size x their max steps; the loop pays Σ njev. Ratio:")
+    print("steps:      mvcalib pays Σ steps (one camera per step on a CPU; under vmap the batch's")
+    print("            size x its max steps); the loop pays Σ njev. Ratio:")
     print("            their quotient; µs per camera step: median total time / those counts.")
     for r in rows:
         for method in SCIPY_METHODS:

@@ -815,17 +815,17 @@ def _adjoint() -> optx.ImplicitAdjoint:
     return optx.ImplicitAdjoint(linear_solver=lx.AutoLinearSolver(well_posed=False))
 
 
-CHUNK = 16
-
-
-def _chunk_size(n_cameras: int) -> int | None:
-    """Cameras solved side by side in one loop (`_sharding.cpu_chunk`): on one CPU device, at most
-    `CHUNK` at a time; else all. A vmapped solve runs until its slowest camera converges, and on a
-    CPU a chunk's Jacobians stay in cache: on the refine benchmark (256 cameras of 108 points)
-    chunks of 16 take 37 ms, of 8, 12, 24, 32 cameras 39-41 ms, one batch of 256 56 ms; on 512
-    cameras of 19 points, chunks of 16 and of 32 take the same time.
-    """
-    return _sharding.cpu_chunk(n_cameras, CHUNK)
+def one_per_step(n_cameras: int) -> bool:
+    """Whether `n_cameras` problems are solved one after another (`lax.map`) rather than side by
+    side (`vmap`): on one CPU device. A vmapped solve runs every member until the slowest has
+    converged, and its while loop selects every member's state at every step. Measured on this
+    project's 2-core machine (warm, one process per row; chunks of 16 vmapped cameras before):
+    256 cameras of 108 points in the user's `jax.jit` 25-26 against 37-39 ms, compiled in 1.1 s
+    less; 1000 of 19 points 98-102 against 114-124 ms; `refine` of 1000 of 19 (the quick build)
+    203-210 against 377-456 ms, of 256 of 108 135-154 against 90-97 ms (the one case slower);
+    the refinement's trace 0.2 s shorter (no `vmap` of a while loop). Accelerators want the
+    batch, and an axis split over devices must stay one."""
+    return _sharding.cpu_chunk(n_cameras, 1) is not None
 
 
 @eqx.filter_jit
@@ -840,7 +840,10 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
     # a camera without a finite seed sees nothing (its problem ends at once), and is flagged
     cams, mask, usable = usable_rig(cams, flat(mask, (n,)), unit_camera(world.dtype, cams.lens))
     inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), mask)
-    out = _sharding.chunked_map(jax.vmap(kernel), inputs, _chunk_size(math.prod(batch)))
+    if one_per_step(math.prod(batch)):
+        out = jax.lax.map(lambda args: kernel(*args), inputs)
+    else:
+        out = jax.vmap(kernel)(*inputs)
     refined, rms_before, rms_after, steps, result, *rest = out
     rms_before, rms_after = (jnp.where(usable, x, jnp.nan) for x in (rms_before, rms_after))
     result = jnp.where(usable, result, NOT_FINITE_SEED)
@@ -933,7 +936,7 @@ def refine(
     """Minimise the reprojection error of every camera, starting from `cameras` (e.g. the DLT).
 
     One independent least-squares problem per camera, all solved in one compiled call (vmapped
-    across the rig; on one CPU device in equal chunks of at most `CHUNK` cameras) by
+    across the rig; on one CPU device one camera after another, `one_per_step`) by
     `optimistix.least_squares` with `SecantLM`, a Levenberg–Marquardt whose model keeps the
     residuals' curvature, and the projection's Jacobian written out. The rotation is refined as
     a minimal axis-angle increment on the seed's; the model is `Camera.project`, with the seed's
