@@ -35,6 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _sharding, _small, _status, _validate
 from ._camera import (
+    LENSES,
     Camera,
     _lens,
     check_lens,
@@ -978,6 +979,30 @@ def _cameras_and_frames(y, args, free):
     return cams, RigidTransform(Rf, tf)
 
 
+def _held_through(initial: Camera, given: Camera, free) -> Camera:
+    """`initial` (`_start`'s cameras, which carry no derivative) with the derivatives of the
+    `given` cameras' parameters that the solve holds (those not in `free`), which it copied: a
+    held value passes through to the answer, and the other parameters' optimum depends on it
+    (implicit derivatives). With `fix="intrinsics"` the derivative of the answer's focal lengths
+    by the given ones was zero, not one. The values stay `initial`'s, to the last bit."""
+    held = set(parameter_names(given.lens)) - {parameter_names(given.lens)[i] for i in free}
+
+    def through(x, g, hold):  # x's value, g's derivative where `hold`
+        d = g - jax.lax.stop_gradient(g)
+        return x + jnp.where(hold & jnp.isfinite(d), d, 0.0)
+
+    fields = {name: name in held for name in ("alpha_u", "alpha_v", "u0", "v0", "skew")}
+    fields["R"] = {"rx", "ry", "rz"} <= held
+    fields["t"] = {"tx", "ty", "tz"} <= held
+    out = initial
+    for name, hold in fields.items():
+        if hold:
+            value = through(getattr(initial, name), getattr(given, name), True)
+            out = eqx.tree_at(lambda c, name=name: getattr(c, name), out, value)
+    coefficients = jnp.asarray([k in held for k in LENSES[given.lens]])
+    return eqx.tree_at(lambda c: c.dist, out, through(initial.dist, given.dist, coefficients))
+
+
 def _uncertainty(y, args, n: _Normal, residuals, *, free, loss):
     """Covariance of each camera's free parameters `sigma^2 S^-1` (S the reduced camera system
     at the solution, undamped, from the solver's last normal equations `n`; the frames'
@@ -1043,11 +1068,14 @@ def _start(target, plane, pixels, mask, cameras, reference, rcond, max_relative_
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relative_rms, *, free,
-                   loss, max_steps):  # fmt: skip
-    """The joint solve from `_start`'s rig, its uncertainty and report."""
+def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relative_rms, given=None,
+                   *, free, loss, max_steps):  # fmt: skip
+    """The joint solve from `_start`'s rig, its uncertainty and report; the parameters the solve
+    holds carry the derivatives of the `given` cameras' (`_held_through`)."""
     pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
     initial, frames, pair, frame_ok, status, distance = start
+    if given is not None:
+        initial = _held_through(initial, given, free)
     C = pair.shape[0]
     ok = status == Status.OK
     # what may move: the free parameters of calibrated cameras, not the reference's pose
@@ -1387,7 +1415,7 @@ def calibrate_rig(
         )  # fmt: skip
         joint = functools.partial(
             _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
-            reference=solve_reference, max_relative_rms=relative_rms, **options,
+            reference=solve_reference, max_relative_rms=relative_rms, given=cameras, **options,
         )  # fmt: skip
         if concrete:  # both programs compile on other threads, the second traced meanwhile
             if (start_like := _buckets.ahead(start)) is not None:

@@ -3,6 +3,7 @@
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -394,6 +395,28 @@ def test_gradient_of_a_camera_position_equals_central_differences():
     numeric = (x_of_camera_2(pixels + h * v) - x_of_camera_2(pixels - h * v)) / (2 * h)
     analytic = float(jnp.sum(gradient * v))
     assert abs(analytic - float(numeric)) <= 1e-4 * abs(float(numeric))
+
+
+def test_gradient_through_the_cameras_it_holds_equals_central_differences():
+    """With `fix="intrinsics"` the given focal lengths pass through to the answer (derivative
+    one) and move the other cameras' poses (implicit derivatives). Both were zero: `_start`,
+    which copies them, stops every derivative."""
+    rig = _rig(noise=0.3, n_cameras=4, n_frames=20, key=0)
+    given = mc.calibrate_rig(rig.target, rig.pixels, rig.mask).cameras
+
+    def solve(alpha_u):
+        cameras = eqx.tree_at(lambda c: c.alpha_u, given, alpha_u)
+        return mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=cameras,
+                                fix="intrinsics").cameras  # fmt: skip
+
+    a = given.alpha_u
+    np.testing.assert_array_equal(jax.grad(lambda a: solve(a).alpha_u.sum())(a), np.ones(4))
+    gradient = jax.grad(lambda a: solve(a).center[1, 0])(a)
+    h = 1e-2  # px of a ~1000 px focal length
+    numeric = [(solve(a.at[i].add(h)).center[1, 0] - solve(a.at[i].add(-h)).center[1, 0]) / (2 * h)
+               for i in range(4)]  # fmt: skip
+    assert np.abs(np.asarray(gradient)).max() > 1e-5  # (not zero)
+    np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-9)
 
 
 def test_pairs_with_too_few_points_are_skipped_and_counted():
