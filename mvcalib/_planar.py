@@ -123,9 +123,16 @@ class PlanarCalibration(eqx.Module):
         return self._shared(self.camera.dist)
 
     def _shared(self, per_view):
-        return _validate.derived(
-            lambda xp, x, s: x[xp.argmax(s == Status.OK)], per_view, self.status
-        )
+        """`per_view` `(..., V, ...)` at each calibration's first calibrated view (also for a
+        batch of calibrations, e.g. from `jax.vmap`: it took the first calibration's)."""
+
+        def first_ok(xp, x, s):
+            axis = s.ndim - 1  # the views'
+            i = xp.argmax(s == Status.OK, axis=-1)
+            i = i.reshape(i.shape + (1,) * (x.ndim - axis))
+            return xp.take_along_axis(x, i, axis=axis).squeeze(axis)
+
+        return _validate.derived(first_ok, per_view, self.status)
 
     @property
     def view_rms(self) -> Float[Array, " V"]:

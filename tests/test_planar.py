@@ -4,6 +4,8 @@ The ground truth is made in NumPy with its own projection (pinhole, skew, radial
 normalised coordinates), independent of `Camera.project`.
 """
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import data_dir
@@ -507,3 +509,29 @@ def test_bad_input_is_refused_with_a_clear_message():
         mc.calibrate_planar(np.broadcast_to(WORLD, (5, 256, 3)), pixels, mask)
     with pytest.raises(ValueError, match="non-finite"):
         mc.calibrate_planar(WORLD, pixels)  # NaN where the points left the image
+
+
+def test_a_batch_of_calibrations_gives_each_its_own_intrinsics():
+    """`jax.vmap` of `calibrate_planar` over three cameras' views: `K` and `dist` took the first
+    calibration's for all three (the first calibrated view was sought over the whole batch)."""
+    grid = np.stack(np.meshgrid(np.arange(9.0), np.arange(6.0)), -1).reshape(-1, 2) * 30
+    points = np.pad(grid, ((0, 0), (0, 1)))
+    R = mc.rodrigues(jnp.array([[0.3, 0.1, 0.0], [-0.2, 0.3, 0.1], [0.1, -0.3, -0.1],
+                                [0.2, 0.2, 0.05]]))  # fmt: skip
+    t = jnp.array([[-90.0, -60, 500], [-100, -50, 550], [-80, -70, 450], [-120, -80, 600]])
+    noise = 0.2 * jax.random.normal(jax.random.key(0), (3, 4, 54, 2))
+    pixels = (
+        jnp.stack(
+            [
+                mc.Camera(f, f - 10, 320.0, 240.0, R, t).project(points)
+                for f in (800.0, 900.0, 1000.0)
+            ]
+        )
+        + noise
+    )
+    batch = jax.vmap(lambda p: mc.calibrate_planar(grid, p, refine=False))(pixels)
+    assert batch.K.shape == (3, 3, 3) and batch.dist.shape == (3, 5)
+    for i in range(3):
+        alone = mc.calibrate_planar(grid, pixels[i], refine=False)
+        np.testing.assert_allclose(batch.K[i], alone.K, rtol=1e-9)
+        np.testing.assert_allclose(batch.dist[i], alone.dist, atol=1e-12)
