@@ -213,7 +213,18 @@ class RigCalibration(eqx.Module):
         return [Status(int(s)).message for s in np.asarray(self.status)]
 
     def __str__(self) -> str:
+        return self.table()
+
+    def table(self, names: Sequence[str] | None = None) -> str:
+        """The result as text: a headline, and a row per camera (named by `names`, else by its
+        index) with its frames, points, RMS, the standard error of its centre and its status."""
+        if not _validate.is_concrete(self.status) or np.ndim(self.status) != 1:
+            return repr(self)  # (traced, or a batch of results from `jax.vmap`)
         status = np.asarray(self.status)
+        names = [str(c) for c in range(len(status))] if names is None else [str(n) for n in names]
+        if len(names) != len(status):
+            raise ValueError(f"{len(names)} names for the {len(status)} cameras.")
+        width = max(6, *map(len, names))
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
         rms, n = np.asarray(self.camera_rms), used.sum(axis=(1, 2))
         frames = used.any(-1).sum(-1)
@@ -225,7 +236,7 @@ class RigCalibration(eqx.Module):
             f"{float(self.rms):.3f} px, {_RESULT_MESSAGES[int(self.result)]} after "
             f"{int(self.iterations)} steps; {int(self.n_skipped)} (camera, frame) pairs skipped "
             "(too few points)",
-            "camera  frames  points  rms (px)  centre std  status",
+            f"{'camera':<{width}}  frames  points  rms (px)  centre std  status",
         ]
         if robust:
             lines.insert(
@@ -233,12 +244,15 @@ class RigCalibration(eqx.Module):
                 f"inliers (within 3 scales of the loss): {int(inliers.sum())} of {int(used.sum())} "
                 f"observations, RMS {float(self.rms_inliers):.3f} px",
             )
-            lines[-1] = "camera  frames  points  rms (px)  inliers  inlier rms  centre std  status"
+            lines[-1] = (
+                f"{'camera':<{width}}  frames  points  rms (px)  inliers  inlier rms  centre std  "
+                "status"
+            )
             square = np.sum(np.asarray(self.residuals) ** 2, -1)
             k = inliers.sum(axis=(1, 2))
             rms_in = np.sqrt(np.where(inliers, square, 0).sum(axis=(1, 2)) / np.maximum(k, 1))
         for c in range(len(status)):
-            columns = f"{c:>6}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
+            columns = f"{names[c]:<{width}}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
             if robust:
                 columns += f"{k[c]:>7}  {rms_in[c]:>10.3f}  "
             lines.append(
@@ -247,8 +261,8 @@ class RigCalibration(eqx.Module):
         gauge = np.flatnonzero((status == Status.OK) & np.all(pos == 0, -1))
         if len(gauge) == 1:  # (the solve's reference: the others' errors are relative to it)
             lines.append(
-                f"centre std: relative to camera {gauge[0]}'s centre (the solve's reference "
-                "camera, whatever the world frame)"
+                f"centre std: relative to camera {names[gauge[0]]}'s centre (the solve's "
+                "reference camera, whatever the world frame)"
             )
         if self.origin_frame is not None:
             lines.append(f"world frame: the target in frame {self.origin_frame}")

@@ -898,8 +898,17 @@ def _calibrate_rig(args) -> int:
         ) from None
     status = np.asarray(result.status)
     ok = status == Status.OK
-    print(result)
+    print(result.table(names=obs.cameras))
     print("cameras: " + ", ".join(f"{c} = {name}" for c, name in enumerate(obs.cameras)))
+    alone = status == Status.NOT_CONNECTED
+    if isinstance(reference, int) and alone.sum() > ok.sum():  # the reference on its own
+        seen = obs.mask.any(-1).sum(-1)  # frames per camera
+        best = obs.cameras[int(np.argmax(np.where(alone, seen, -1)))]
+        print(
+            f"note: {_count(int(alone.sum()), 'camera')} share no frames with the reference "
+            f"camera {obs.cameras[reference]}: --reference {best} (or --reference target) makes "
+            f"the world {best}'s frame and calibrates the cameras linked to it."
+        )
     origin = None if result.origin_frame is None else int(obs.frames[result.origin_frame])
     if origin is not None:
         print(f"frame {result.origin_frame} is frame {origin} of {args.observations}")

@@ -232,6 +232,31 @@ def test_a_failed_joint_solve_says_what_to_try_in_the_command_line(tmp_path, cap
     assert "inliers of the Huber loss (within 6 px)" in capsys.readouterr().out
 
 
+def test_a_reference_camera_on_its_own_is_named_with_the_way_out(tmp_path, capsys, cache_off):
+    """Camera 0 (the default reference) shares no frame with the others: they were all
+    NOT_CONNECTED with no hint that another reference calibrates them. The table names the
+    cameras (it numbered them)."""
+    rig, observations = _observations(40)
+    mask = observations.mask.copy()
+    mine = np.flatnonzero(mask[0].any(-1))[:10]
+    mask[0] = False
+    mask[0, mine] = observations.mask[0, mine]
+    mask[1:, mine] = False
+    path = mc.io.save_observations(
+        tmp_path / "obs.csv", dataclasses.replace(observations, mask=mask)
+    )
+    assert _main("calibrate-rig", path, "--out", tmp_path / "r.json", "--quiet") == 1
+    out = capsys.readouterr().out
+    assert "note: 3 cameras share no frames with the reference camera cam a: --reference" in out
+    assert re.search(r"^cam b\s+0\s+0\s+nan\s+nan\s+NOT_CONNECTED$", out, re.M), out
+    best = re.search(r"--reference (cam \w) \(or", out).group(1)
+    assert (
+        _main("calibrate-rig", path, "--out", tmp_path / "r.json", "--reference", best, "--quiet")
+        == 1
+    )  # fmt: skip (camera 0 on its own now)
+    assert "3 of 4 cameras calibrated" in capsys.readouterr().out
+
+
 # ---------------------------------------------------------------------------- failures
 @pytest.fixture
 def files(tmp_path, monkeypatch, cache_off):
