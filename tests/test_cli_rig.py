@@ -253,7 +253,7 @@ def test_a_reference_camera_on_its_own_is_named_with_the_way_out(tmp_path, capsy
     assert (
         _main("calibrate-rig", path, "--out", tmp_path / "r.json", "--reference", best, "--quiet")
         == 1
-    )  # fmt: skip (camera 0 on its own now)
+    )  # (camera 0 on its own now)
     assert "3 of 4 cameras calibrated" in capsys.readouterr().out
 
 
