@@ -982,7 +982,7 @@ def _load_observations(path):
     from . import io
 
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:
             first = next((line for line in f if line.strip()), "")
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: not a readable observations file ({error})") from None

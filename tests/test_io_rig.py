@@ -201,6 +201,11 @@ def test_round_trip_names_unseen_points_frames_and_silent_cameras(tmp_path):
         + '"z, the last",-3,2,0.0,0.0,0.0,1.5,2.0\n'
     )
     _same(mc.io.load_observations(path), o)
+    # saved by a spreadsheet as "CSV UTF-8": a byte-order mark before the header, CRLF lines
+    # (the header's first column was "\ufeffcamera", an unknown column)
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes(b"\xef\xbb\xbf" + path.read_text().replace("\n", "\r\n").encode())
+    _same(mc.io.load_observations(excel), o)
 
 
 @pytest.mark.parametrize("seed", range(8))
