@@ -482,7 +482,8 @@ def test_calibrate_rig_reads_aniposelib_intrinsics(files, capsys):
     args = ["calibrate-rig", "obs.csv", "--intrinsics", str(path), "--out", "r.json", "--quiet"]
     assert cli.main(args) == 2
     assert capsys.readouterr().err == (
-        f"mvcalib: error: {path}: 12 cameras; the observations have 2.\n"
+        f"mvcalib: error: {path}: 12 cameras; the observations have 2, and no name in common "
+        "to match them by.\n"
     )
 
 
