@@ -10,19 +10,21 @@ before the compiled call and cuts the answer back afterwards:
 - a program covers at least `WORK` camera-points (64 cameras of 64 points), so every rig up to
   that size shares one program (`cameras_and_points`).
 
-Padding changes nothing that is returned. A padded point is hidden (`mask` False, zeros in
-`world` and `pixels`), and hidden points have no influence at all. A padded camera is a copy of
-the last camera, whose answer does not depend on the others in its batch (inverse iteration
-goes on while any camera does, the others keeping their vectors); refinement sees it as a
-camera without a seed, whose problem ends at once. `calibrate_rig` pads its frames and
-`calibrate_planar` its views, in coarser buckets (a recording's length changes with every
-recording), with frames or views nobody saw, and `refine_rig` its cameras and points, with
-cameras that see nothing and points nobody sees, which their solves hold still: these joint
-solves round differently, so the answer is the same to the solves' tolerance (steps of 1e-5
-standard errors), not to the last digit. The padding is done on the host in NumPy (on a CPU
-that is the arrays' own memory), so that a new shape compiles nothing but the bucket's program.
-Inside the user's traced code, shapes are theirs: padding would only add work to the program
-they compile anyway.
+Padding changes nothing that is returned but rounding. A padded point is hidden (`mask` False,
+zeros in `world` and `pixels`), and hidden points have no influence at all; longer sums may round
+in another order, and a solver that stops at a tolerance (`refine`: steps of 1e-5 standard errors)
+may then stop a step apart: in a trial, the same refinement eager (padded) and inside the user's
+`jax.jit` (not) differed by up to 7e-7 (relative) and one step. A padded camera is a copy of the
+last camera, whose answer does not depend on the others in its batch (inverse iteration goes on
+while any camera does, the others keeping their vectors); refinement sees it as a camera without a
+seed, whose problem ends at once. `calibrate_rig` pads its frames and `calibrate_planar` its views,
+in coarser buckets (a recording's length changes with every recording), with frames or views nobody
+saw, and `refine_rig` its cameras and points, with cameras that see nothing and points nobody sees,
+which their solves hold still: these joint solves round differently, so the answer is the same to
+the solves' tolerance (steps of 1e-5 standard errors), not to the last digit. The padding is done
+on the host in NumPy (on a CPU that is the arrays' own memory), so that a new shape compiles
+nothing but the bucket's program. Inside the user's traced code, shapes are theirs: padding would
+only add work to the program they compile anyway.
 
 Programs are compiled by `jit` (in a build that compiles quickly when small) and, where a call
 runs several one after the other, on other threads at the same time (`ahead`).

@@ -1,4 +1,7 @@
-"""Synthetic rigs with ground truth, for tests, demos and benchmarks. Deterministic given a key."""
+"""Synthetic rigs with ground truth, for tests, demos and benchmarks. Deterministic given a key
+and a dtype: JAX draws random numbers per dtype, so the same key gives another rig in float32
+(x64 off, JAX's default) than in float64; to compare the two, make the rig once (`dtype=`) and
+cast it."""
 
 from __future__ import annotations
 
