@@ -110,6 +110,13 @@ OWN_FRAMES = 128
 
 
 # ------------------------------------------------------------------------------ the result
+_DEGENERATE_IN_A_RIG = (
+    "degenerate: its frames of the target do not determine its intrinsics (one view of a board, "
+    "or views of it from one direction, cannot): record more frames of it at other angles, or "
+    "give its intrinsics (`cameras=` with `fix='intrinsics'`; mvcalib calibrate-rig --intrinsics)"
+)
+
+
 class SolveFailed(ValueError):
     """`calibrate_rig`'s joint solve left every camera POOR_FIT."""
 
@@ -209,8 +216,12 @@ class RigCalibration(eqx.Module):
         return _validate.derived(lambda xp, s: xp.sum(s), self.skipped)
 
     def messages(self) -> list[str]:
-        """One line per camera: its status's message."""
-        return [Status(int(s)).message for s in np.asarray(self.status)]
+        """One line per camera: its status's message, in a rig's words where they differ from
+        a single camera's (a degenerate camera's frames did not determine its intrinsics)."""
+        return [
+            _DEGENERATE_IN_A_RIG if s == Status.DEGENERATE else Status(int(s)).message
+            for s in np.asarray(self.status)
+        ]
 
     def __str__(self) -> str:
         return self.table()

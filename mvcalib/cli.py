@@ -938,7 +938,7 @@ def _calibrate_rig(args) -> int:
     written = _write_rig(args, result.cameras, obs.cameras, status, result.camera_rms, meta)
     print()
     for i in np.flatnonzero(~ok):
-        print(f"{obs.cameras[i]}: {Status(int(status[i])).message}")
+        print(f"{obs.cameras[i]}: {result.messages()[i]}")
     n_observed = int(np.asarray(result.observed).sum())
     print(
         f"all cameras: {_count(n_observed, 'observation')}, RMS "

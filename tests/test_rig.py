@@ -419,6 +419,19 @@ def test_gradient_through_the_cameras_it_holds_equals_central_differences():
     np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-9)
 
 
+def test_a_camera_with_one_frame_of_the_board_is_degenerate_in_a_rigs_words():
+    """One view of a plane does not determine a camera's intrinsics; the message was the DLT's
+    ("use a non-coplanar target, or calibrate_planar"), wrong advice in a rig."""
+    rig = _rig(noise=0.3)
+    mask = np.asarray(rig.mask).copy()
+    frames = np.flatnonzero(mask[4].any(-1))
+    mask[4, frames[1:]] = False
+    result = mc.calibrate_rig(rig.target, rig.pixels, mask)
+    assert int(result.status[4]) == mc.Status.DEGENERATE
+    assert "frames of the target do not determine its intrinsics" in result.messages()[4]
+    assert bool(np.delete(np.asarray(result.ok), 4).all())
+
+
 def test_pairs_with_too_few_points_are_skipped_and_counted():
     rig = _rig(noise=0.3)
     mask = np.asarray(rig.mask).copy()
