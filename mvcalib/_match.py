@@ -402,6 +402,10 @@ _LOCAL_GATE = 0.2
 # A lattice must hold this fraction of the grid's dots: a view of a fisheye at 75 degrees whose
 # lattice had 40 of 63 was shifted by a row (the pinhole views of the tests hold 95 %).
 _MIN_COVERAGE = 0.75
+# With all of its markers found on large blobs, and no other placement near as good, a lattice
+# is placed by them: a board half out of the image, which the rule above flagged (a trial's
+# photos of a 7 x 9 grid: 30 of 46 labelled -> 39, none wrong).
+_MIN_MARKED_COVERAGE = 0.4
 
 
 def _local_predictions(H, nodes, known, pixels):
@@ -472,7 +476,10 @@ def label_grid(
     board seen from its other side) that puts them on blobs larger than their neighbours (major
     axis over `min_ratio` times theirs, as `mvcalib.label_dots` finds fiducials), and small ones
     elsewhere: all of the markers found, or all but one, and every other placement off by two
-    blobs or more; else the view is flagged.
+    blobs or more; else the view is flagged. With all of them found, they also place a lattice
+    that has lost border rows or columns (a board partly out of the image) and hold 40 % of its
+    dots: the placement (a shift too) that puts the markers on the large blobs, if no other
+    comes within two blobs of it.
 
     **Example:**
 
@@ -558,7 +565,10 @@ def label_grid(
             M, B, f"the lattice found is {_extent(keys)} dots and fits nowhere on the grid: "
             "blobs beside the grid joined it",
         )  # fmt: skip
-    if rivals != symmetries:
+    # with markers in view, they place a lattice that has lost a border row or column too (a
+    # board half out of the image); not with clutter in it, whose keys differ by placement
+    partial = rivals != symmetries and len(markers) > 0 and fewest == 0
+    if rivals != symmetries and not partial:
         return Labels.failed(
             M, B, f"the lattice found is {_extent(grid[placements[0][placements[0] >= 0]])} "
             f"dots, which fit {rivals // symmetries} places on the grid: a border row or column "
@@ -569,11 +579,12 @@ def label_grid(
     keys, placements = keys[on], placements[:, on]
     members = np.array(list(lattice.values()))[on]
     pixels = blobs[members]
-    if len(keys) < _MIN_COVERAGE * M:
-        return Labels.failed(
-            M, B, f"only {len(keys)} of the grid's {M} dots form its lattice: too few to trust "
-            "where its rows and columns fall",
-        )  # fmt: skip
+    too_few = Labels.failed(
+        M, B, f"only {len(keys)} of the grid's {M} dots form its lattice: too few to trust "
+        "where its rows and columns fall",
+    )  # fmt: skip
+    if len(keys) < (_MIN_MARKED_COVERAGE if len(markers) else _MIN_COVERAGE) * M:
+        return too_few
     if len(markers):  # the placement that puts the markers on the large blobs, and them only
         large = _size_ratios(np.asarray(detection.major, float).reshape(-1), d)[members] > min_ratio
         misfits = np.array([np.sum(large != np.isin(ids, markers)) for ids in placements])
@@ -581,11 +592,14 @@ def label_grid(
         found = int(np.sum(large & np.isin(placements[best], markers)))
         rival = np.sort(misfits)[1] if len(misfits) > 1 else np.inf
         if found < max(1, len(markers) - 1) or rival < misfits[best] + 2:
+            where = "place and orientation" if partial else "orientation"
             return Labels.failed(
-                M, B, f"the markers do not tell the grid's orientation: {found} of "
+                M, B, f"the markers do not tell the grid's {where}: {found} of "
                 f"{len(markers)} found as large blobs, and the grid's turns and mirrorings "
-                f"misplace {np.sort(misfits).tolist()} large or small blobs",
+                f"misplace {np.sort(misfits).tolist()[:8]} large or small blobs",
             )  # fmt: skip
+        if len(keys) < _MIN_COVERAGE * M and found < len(markers):
+            return too_few  # (a part of the grid is placed by all of its markers only)
     else:  # as a camera on the board's +z side sees it, dot 0 nearest the image's top left
         seen = np.flatnonzero(det > 0)
         best = seen[np.argmin([np.sum(pixels[np.argmin(placements[k])]) for k in seen])]

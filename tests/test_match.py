@@ -513,3 +513,33 @@ def test_a_grid_with_a_missing_border_row_is_flagged():
     image = mc.synthetic.render(camera, GRID, (1280, 960), hidden=range(0, 12), key=0)
     labels = mc.label_grid(mc.detect_dots(image), 9, 12)
     assert not labels.ok and "8 x 12" in labels.message or "12 x 8" in labels.message
+
+
+def test_a_marked_grid_half_out_of_the_image_is_placed_by_its_markers():
+    """A board whose far columns leave the image has lost border columns: its lattice fits
+    several places on the grid, and the view was flagged even with the four markers in view
+    (a trial's photos: 16 of 46 flagged, 11 of them so). Its markers now place it: views at any
+    roll and up to 45 degrees of tilt with 3-6 of the 12 columns gone, every one right or
+    flagged; without markers every one is flagged."""
+    markers = (0, 1, 2, 12)
+    grid = mc.targets.dot_grid(9, 12, 20.0, markers=markers)
+    counts = {"right": 0, "flagged": 0, "wrong": 0}
+    plain_ok = 0
+    for seed, tilt in enumerate(np.linspace(0.0, 45.0, 8)):
+        camera = rolled_view(seed, tilt)
+        gone = 3 + seed % 4  # the last columns, as if out of the image
+        hidden = [r * 12 + c for r in range(9) for c in range(12 - gone, 12)]
+        image = mc.synthetic.render(camera, grid, (1280, 960), hidden=hidden, key=seed)
+        detection = mc.detect_dots(image)
+        truth = np.asarray(camera.project(grid.points))
+        labels = mc.label_grid(detection, 9, 12, markers=markers)
+        if labels.ok:
+            right = np.abs(labels.pixels[labels.mask] - truth[labels.mask]).max() < 1.5
+            counts["right" if right else "wrong"] += 1
+            assert not labels.mask[hidden].any()
+        else:
+            counts["flagged"] += 1
+        plain_ok += mc.label_grid(detection, 9, 12).ok
+    print(counts)
+    assert counts["wrong"] == 0 and counts["right"] >= 6, counts
+    assert plain_ok == 0
