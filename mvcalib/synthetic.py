@@ -354,6 +354,11 @@ def board_rig(
     fraction of its frames, drawn from `dropped` per camera (default 0-30 % for a board, 40-75 %
     for an object), and the points outside its image.
 
+    A board shows its -z side to the cameras that see it, where `render` prints a planar
+    target's dots on its +z side (`dot_normals`): to render a camera's photo of frame `f`, pose
+    the camera on the board (`R_c R_f`, `R_c t_f + t_c`) and pass
+    `normals=np.tile([0.0, 0.0, -1.0], (len(points), 1))`, or the photo is blank.
+
     **Example:**
 
     ```python
