@@ -151,6 +151,9 @@ def calibrate(
 
     ```
     """
+    _validate.static_options(
+        "calibrate", skew=skew, rcond=rcond, max_relative_rms=max_relative_rms, strict=strict
+    )
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`), so that
     # rigs of other sizes reuse the compiled program; checked and padded in NumPy. (A rig of a
     # bucket's shape, or inside the caller's trace, goes as it is.)

@@ -984,6 +984,7 @@ def refine(
     if not isinstance(cameras, Camera):
         raise ValueError(f"`cameras` must be an mvcalib.Camera; got {type(cameras).__name__}.")
     check_loss(loss)
+    _validate.static_options("refine", skew=skew, max_steps=max_steps)
     # Called with concrete arrays, the rig is padded to its shape bucket (`_buckets`): padded
     # cameras have NaN seeds, which end at once, padded points are hidden.
     bucketed = _buckets.applies(cameras) and _buckets.pads(world, pixels, mask)

@@ -366,6 +366,9 @@ def triangulate(
 
     ```
     """
+    _validate.static_options(
+        "triangulate", refine=refine, min_angle=min_angle, max_rms=max_rms, max_steps=max_steps
+    )
     if not isinstance(cameras, Camera) or len(cameras.batch_shape) != 1:
         raise ValueError("`cameras` must be a rig: one `Camera` with a camera axis (C,).")
     C = cameras.batch_shape[0]

@@ -34,6 +34,21 @@ def is_concrete(*arrays) -> bool:
     return _outside_traces() and not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+def static_options(function: str, **options) -> None:
+    """Refuse options (`skew=`, `rcond=`, ...) that arrive traced, from the arguments of a
+    `jax.jit`-ed call of `mc.<function>`, saying how to keep them static; they reached the code
+    as tracers and failed there in JAX's words ("Non-hashable static arguments",
+    ConcretizationTypeError)."""
+    for name, value in options.items():
+        if isinstance(value, jax.core.Tracer):
+            raise TypeError(
+                f"`{name}` of mc.{function} is an option, not data, and it is traced here (an "
+                f"argument of a jax.jit-ed call): make it static, jax.jit(functools.partial("
+                f"mc.{function}, {name}=...)) or jax.jit(mc.{function}, static_argnames="
+                f"'{name}')."
+            )
+
+
 def derived(fn, *arrays):
     """`fn(xp, *arrays)` for a small quantity derived from a result's arrays: in NumPy, put on
     the device, when they are concrete and on one device (each eager `jnp` operation compiles a

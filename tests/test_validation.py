@@ -197,6 +197,14 @@ def _misuses(rig):
          r"`grid` is an mvcalib.targets.Target"),
         (lambda: mc.detect_dots(np.zeros((64, 64)), dark_dots="no"), TypeError,
          "`dark_dots` is True or False; got 'no'"),
+        (lambda: jax.jit(mc.calibrate)(W, P, M, skew=False), TypeError,
+         r"`skew` of mc.calibrate is an option.*static_argnames='skew'"),
+        (lambda: jax.jit(mc.calibrate)(W, P, M, max_relative_rms=0.1), TypeError,
+         "`max_relative_rms` of mc.calibrate is an option"),
+        (lambda: jax.jit(mc.triangulate)(cameras, P, M, min_angle=2.0), TypeError,
+         "`min_angle` of mc.triangulate is an option"),
+        (lambda: jax.jit(mc.refine)(cameras, W, P, M, max_steps=20), TypeError,
+         "`max_steps` of mc.refine is an option"),
     ]  # fmt: skip
 
 
