@@ -176,3 +176,22 @@ def test_a_batch_of_transforms_is_indexed_as_a_rig_is():
         poses[4][0]
     with pytest.raises(TypeError, match="has no length"):
         len(poses[4])
+
+
+def test_rodrigues_second_derivatives_just_above_its_series():
+    """`(1 - cos t) / t^2` lost its second derivative to cancellation just above the switch to
+    the Taylor series (2e-5, relative, at t = 2e-6); the half-angle form keeps it to 1e-9. The
+    reference: the series to t^4, exact there."""
+
+    def series(w):
+        t2 = jnp.sum(w * w)
+        K = jnp.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        a, b = 1 - t2 / 6 + t2**2 / 120, 0.5 - t2 / 24 + t2**2 / 720
+        return jnp.eye(3) + a * K + b * (K @ K)
+
+    v = jnp.array([0.3, -1.2, 0.7])
+    for t in (2e-6, 1e-5, 1e-4):
+        w = t * jnp.array([0.6, 0.0, 0.8])
+        exact = jax.hessian(lambda w: jnp.sum(series(w) @ v))(w)
+        ours = jax.hessian(lambda w: jnp.sum(mc.rodrigues(w) @ v))(w)
+        np.testing.assert_allclose(ours, exact, atol=1e-9)
