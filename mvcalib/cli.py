@@ -171,13 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
         "named with the reason (exit code 1); the JSON rig records their status.",
     )
     calibrate.add_argument("correspondences", metavar="CORRESPONDENCES", help=".csv or .json")
-    calibrate.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
-    calibrate.add_argument(
-        "--format",
-        choices=("json", "opencv", "colmap"),
-        help="json (records failed cameras too), opencv (FileStorage YAML) or colmap (text "
-        "model in the folder --out; needs --image-size and --refine or --distortion); default "
-        "from --out: .json, .yml or .yaml",
+    _rig_output(
+        calibrate, "records failed cameras too", "--image-size and --refine or --distortion"
     )
     calibrate.add_argument(
         "--refine",
@@ -211,13 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="OBSERVATIONS",
         help="observations .csv (mvcalib.io.save_observations) or caliscope's xy.csv",
     )
-    rig.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
-    rig.add_argument(
-        "--format",
-        choices=("json", "opencv", "colmap"),
-        help="json (records failed cameras, the standard errors and the settings too), opencv "
-        "(FileStorage YAML) or colmap (text model in the folder --out; needs --image-size); "
-        "default from --out: .json, .yml or .yaml",
+    _rig_output(
+        rig, "records failed cameras, the standard errors and the settings too", "--image-size"
     )
     rig.add_argument(
         "--intrinsics",
@@ -553,7 +543,18 @@ def _check_usage(parser, args) -> None:
         parser.error("--focal must be positive (a focal-length guess in pixels)")
 
 
-_FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv"}  # `calibrate --out`'s
+_FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv"}  # --out's, of a rig
+
+
+def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
+    """A rig's --out and --format (`calibrate`'s and `calibrate-rig`'s; `_check_format`)."""
+    parser.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
+    parser.add_argument(
+        "--format",
+        choices=("json", "opencv", "colmap"),
+        help=f"json ({json_holds}), opencv (FileStorage YAML) or colmap (text model in the "
+        f"folder --out; needs {colmap_needs}); default from --out: .json, .yml or .yaml",
+    )
 
 
 def _check_writable(parser, flag: str, path: pathlib.Path) -> None:
