@@ -46,6 +46,9 @@ EXAMPLES = {
                                   robust to wrong detections, with a figure of the residuals
   mvcalib calibrate-rig observations.csv --fisheye --image-size 1280 960 --out rig.json
                                   fisheye cameras, nothing known but the photos' size
+  mvcalib calibrate-rig new.csv --intrinsics rig.json --fix intrinsics,distortion,pose \\
+      --out check.json            a rig checked against another recording: only the target's
+                                  poses are fitted; the table gives each camera's RMS
   mvcalib calibrate-rig observations.csv --reference target --origin-frame 120 --out rig.yml
                                   the board in frame 120 (the file's id) is the world's; OpenCV
                                   YAML (JSON keeps the statuses and standard errors too)""",

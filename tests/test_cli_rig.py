@@ -257,6 +257,29 @@ def test_a_reference_camera_on_its_own_is_named_with_the_way_out(tmp_path, capsy
     assert "3 of 4 cameras calibrated" in capsys.readouterr().out
 
 
+def test_a_rig_is_checked_against_another_recording(tmp_path, capsys, cache_off):
+    """Calibrated from the first 40 frames, held whole (`--fix intrinsics,distortion,pose`) on
+    the last 40: only the board's poses are fitted, the cameras come back as given, and their
+    RMS is the noise's (0.3 px in x and y)."""
+    rig, observations = _observations(80)
+    half = lambda x: dataclasses.replace(  # noqa: E731
+        observations, pixels=observations.pixels[:, x], mask=observations.mask[:, x],
+        frames=observations.frames[x],
+    )  # fmt: skip
+    first = mc.io.save_observations(tmp_path / "first.csv", half(slice(0, 40)))
+    second = mc.io.save_observations(tmp_path / "second.csv", half(slice(40, 80)))
+    assert _main("calibrate-rig", first, "--out", tmp_path / "rig.json", "--quiet") == 0
+    held = ["--intrinsics", tmp_path / "rig.json", "--fix", "intrinsics,distortion,pose"]
+    assert _main("calibrate-rig", second, *held, "--out", tmp_path / "check.json", "--quiet") == 0
+    out = capsys.readouterr().out
+    rms = float(re.search(r"all cameras: \d+ observations, RMS ([\d.]+) px", out.split("\n\n")[-1]
+                          .replace("\n", " ")).group(1))  # fmt: skip
+    assert 0.35 < rms < 0.5
+    given, _ = mc.io.load_json(tmp_path / "rig.json")
+    checked, _ = mc.io.load_json(tmp_path / "check.json")
+    jax.tree_util.tree_map(np.testing.assert_array_equal, checked, given)
+
+
 # ---------------------------------------------------------------------------- failures
 @pytest.fixture
 def files(tmp_path, monkeypatch, cache_off):
