@@ -272,8 +272,8 @@ class RigCalibration(eqx.Module):
         gauge = np.flatnonzero((status == Status.OK) & np.all(pos == 0, -1))
         if len(gauge) == 1:  # (the solve's reference: the others' errors are relative to it)
             lines.append(
-                f"centre std: relative to camera {names[gauge[0]]}'s centre (the solve's "
-                "reference camera, whatever the world frame)"
+                f"centre std: in the target's units, relative to camera {names[gauge[0]]}'s "
+                "centre (the solve's reference camera, whatever the world frame)"
             )
         if self.origin_frame is not None:
             lines.append(f"world frame: the target in frame {self.origin_frame}")

@@ -553,7 +553,7 @@ def test_reference_target_puts_the_world_on_the_board():
     # the standard errors stay relative to the solve's reference: the camera of the most frames
     gauge = int(np.argmax(np.asarray(rig.mask).any(-1).sum(1)))
     assert np.all(np.asarray(result.position_std)[gauge] == 0)
-    assert f"centre std: relative to camera {gauge}'s centre (the solve's" in str(result)
+    assert f"centre std: in the target's units, relative to camera {gauge}'s centre" in str(result)
 
 
 def test_a_camera_whose_fit_fails_is_flagged_poor_fit_and_left_out(capsys):
