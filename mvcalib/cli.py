@@ -977,7 +977,16 @@ def _calibrate_rig(args) -> int:
             f"{float(result.rms_observed):.3g} px",
         )
         plot.save_figure(figure, args.plot)
-        print(f"figure written to {args.plot}")
+        extra = int(mask.sum()) - int(np.asarray(result.used).sum())
+        print(
+            f"figure written to {args.plot}"
+            + (  # (its counts and RMS are over every observation: the table's over those used)
+                f" (every observation of a calibrated camera in a posed frame: {extra} more "
+                "than the table's, from the pairs skipped or left out of the fit)"
+                if extra > 0
+                else ""
+            )
+        )
     return 0 if ok.all() else 1
 
 
