@@ -941,6 +941,7 @@ def _calibrate_rig(args) -> int:
     }
     written = _write_rig(args, result.cameras, obs.cameras, status, result.camera_rms, meta)
     print()
+    _print_intrinsics(result, obs.cameras)
     for i in np.flatnonzero(~ok):
         print(f"{obs.cameras[i]}: {result.messages()[i]}")
     n_observed = int(np.asarray(result.observed).sum())
@@ -988,6 +989,52 @@ def _calibrate_rig(args) -> int:
             )
         )
     return 0 if ok.all() else 1
+
+
+# The estimated intrinsics of a camera whose standard errors exceed these (pixels; a fraction of
+# the focal length) are noted as weakly determined: in the board trial, caliscope's cam_1 with its
+# intrinsics free put u0 101 px from caliscope's (15 px standard error) at RMS 0.88 px, OK.
+_LOOSE_CENTRE_PX, _LOOSE_FOCAL = 5.0, 0.01
+
+
+def _print_intrinsics(result, names) -> None:
+    """The estimated focal lengths and principal points with their standard errors, one row a
+    calibrated camera, and a note for those the recording determines poorly (nothing if the
+    intrinsics were held)."""
+    import numpy as np
+
+    estimated = [n for n in ("alpha_u", "alpha_v", "u0", "v0") if n in result.parameter_names]
+    if not estimated:
+        return
+    value = {n: np.asarray(getattr(result.cameras, n)) for n in ("alpha_u", "alpha_v", "u0", "v0")}
+    std = np.asarray(result.parameter_std)
+    spread = {n: std[:, result.parameter_names.index(n)] if n in estimated else None
+              for n in value}  # fmt: skip
+    width = max(6, *map(len, map(str, names)))
+    print(f"{'camera':<{width}}  {'alpha_u':>16}  {'alpha_v':>16}  {'u0':>14}  {'v0':>14}  (px)")
+    loose = []
+    for c in np.flatnonzero(np.asarray(result.ok)):
+        cells = [
+            f"{value[n][c]:.1f}" + ("" if spread[n] is None else f" ± {spread[n][c]:.2g}")
+            for n in value
+        ]
+        a_u, a_v, u0, v0 = cells
+        print(f"{names[c]:<{width}}  {a_u:>16}  {a_v:>16}  {u0:>14}  {v0:>14}")
+        centre = max((spread[n][c] for n in ("u0", "v0") if spread[n] is not None), default=0)
+        focal = max(
+            (spread[n][c] / value[n][c] for n in ("alpha_u", "alpha_v") if spread[n] is not None),
+            default=0,
+        )
+        if centre > _LOOSE_CENTRE_PX or focal > _LOOSE_FOCAL:
+            loose.append(names[c])
+    if loose:
+        print(
+            f"note: the recording determines the intrinsics of {', '.join(map(str, loose))} "
+            f"poorly (a principal point's standard error above {_LOOSE_CENTRE_PX:g} px or a focal "
+            f"length's above {_LOOSE_FOCAL:.0%}): record them at more angles and across the "
+            "whole image, or hold known ones with --intrinsics ... --fix intrinsics"
+        )
+    print()
 
 
 def _load_observations(path):
