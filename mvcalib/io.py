@@ -802,16 +802,7 @@ def _from_csv(text: str, path) -> Correspondences:
         field = {h: row[k].strip() for h, k in column.items()}
 
         def numbers(names, where=where, field=field):
-            values = [field[h] for h in names]
-            if not any(values):
-                return None
-            try:
-                xs = tuple(float(v) for v in values)
-            except ValueError:
-                raise ValueError(f"{where}: {', '.join(values)} are not all numbers.") from None
-            if not all(math.isfinite(x) for x in xs):
-                raise ValueError(f"{where}: NaN or inf in {', '.join(names)}.")
-            return xs
+            return _parse_numbers(where, names, [field[h] for h in names])
 
         camera = field["camera"]
         xyz = numbers(_WORLD) if has_world else None
@@ -1080,7 +1071,8 @@ def _parse_numbers(where, names, values, *, blank_ok=True):
     try:
         xs = tuple(float(v) for v in values)
     except ValueError:
-        raise ValueError(f"{where}: {', '.join(values)} are not all numbers.") from None
+        shown = ", ".join(repr(v) for v in values)
+        raise ValueError(f"{where}: {', '.join(names)} = {shown} are not all numbers.") from None
     if not all(math.isfinite(x) for x in xs):
         raise ValueError(f"{where}: NaN or inf in {', '.join(names)}.")
     return xs
@@ -1157,8 +1149,9 @@ def load_observations(path) -> Observations:
         where = f"{path}:{line}"
         field = {h: row[k] for h, k in column.items()}
         camera = field["camera"]
-        frame = _parse_id(where, "frame", field["frame"])
-        point = _parse_id(where, "point", field["point"])
+        # (integral floats too: pandas writes an integer column with gaps as 109.0)
+        frame = _parse_id(where, "frame", field["frame"], lenient=True)
+        point = _parse_id(where, "point", field["point"], lenient=True)
         xyz = _parse_numbers(where, _TARGET, [field[h] for h in _TARGET])
         xy = _parse_numbers(where, _PIXEL, [field[h] for h in _PIXEL])
         if (point is None) != (xyz is None):

@@ -103,7 +103,7 @@ def test_csv_without_point_names_identifies_points_by_their_world_coordinates(tm
         ("camera,point,pixel_x,pixel_y,colour\n", "unknown column 'colour'"),
         ("camera,pixel_x,pixel_y\na,1,2\n", "needs a 'point' column"),
         ("camera,point,pixel_x,pixel_y\na,1,2\n", ":2: 3 fields"),
-        ("camera,point,pixel_x,pixel_y\na,1,2,x\n", ":2: 2, x are not all numbers"),
+        ("camera,point,pixel_x,pixel_y\na,1,2,x\n", ":2: pixel_x, pixel_y = '2', 'x' are not all"),
         ("camera,point,pixel_x,pixel_y\na,1,2,nan\n", ":2: NaN or inf"),
         ("camera,point,pixel_x,pixel_y\na,1,2,3\na,1,2,3\n", ":3: camera 'a' saw point '1' on"),
         (

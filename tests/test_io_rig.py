@@ -152,7 +152,7 @@ ROW = "416,1,413,48033.0,0,0,710.9,507.4,0.05400000140070915,0.05400000140070915
     [
         ("", "empty"),
         (XY_HEADER.replace(",img_loc_y", ""), ":1: no 'img_loc_y' column"),
-        (XY_HEADER + ROW.replace("710.9", "x"), ":2: x, 507.4 are not all numbers"),
+        (XY_HEADER + ROW.replace("710.9", "x"), ":2: img_loc_x, img_loc_y = 'x', '507.4' are not"),
         (XY_HEADER + ROW.replace("710.9", "nan"), ":2: NaN or inf in img_loc_x, img_loc_y"),
         (XY_HEADER + ROW.replace("416,1", "416,b"), ":2: cam_id 'b' is not an integer"),
         (XY_HEADER + ROW.replace("416,1", "416.5,1"), ":2: sync_index '416.5' is not an"),
@@ -252,12 +252,13 @@ def test_hand_written_file_with_comments_any_column_order_and_out_of_order_rows(
         (HEADER.replace("\n", ",colour\n"), ":1: unknown column 'colour'"),
         (HEADER.replace("\n", ",frame\n"), ":1: a repeated column"),
         (HEADER + "a,1,0,0,0,0,2\n", ":2: 7 fields; the header has 8"),
-        (HEADER + "a,1,0,0,0,0,2,x\n", ":2: 2, x are not all numbers"),
+        (HEADER + "a,1,0,0,0,0,2,x\n", ":2: pixel_x, pixel_y = '2', 'x' are not all numbers"),
+        (HEADER + "a,1,0,0,0,0,,744.9\n", ":2: pixel_x, pixel_y = '', '744.9' are not all numbers"),
         (HEADER + "a,1,0,0,0,0,2,nan\n", ":2: NaN or inf in pixel_x, pixel_y"),
         (HEADER + "a,1,0,0,inf,0,2,3\n", ":2: NaN or inf in target_x, target_y, target_z"),
         (HEADER + "a,1.5,0,0,0,0,2,3\n", ":2: frame '1.5' is not an integer"),
         (HEADER + "a,1,p,0,0,0,2,3\n", ":2: point 'p' is not an integer"),
-        (HEADER + "a,1e30,0,0,0,0,2,3\n", ":2: frame '1e30' is not an integer"),
+        (HEADER + "a,1e30,0,0,0,0,2,3\n", ":2: frame '1e30' is out of range"),
         (HEADER + f"a,{2**63},0,0,0,0,2,3\n", f":2: frame '{2**63}' is out of range"),
         (
             HEADER + "a,1,0,0,0,0,2,3\nb,2,0,0,0,1,2,3\n",
@@ -318,3 +319,13 @@ def test_save_refuses_inconsistent_observations_and_writes_nothing(tmp_path, cha
         mc.io.save_observations(tmp_path / "obs.csv", mc.io.Observations(**{**fields, **change}))
     assert message in str(info.value)
     assert not (tmp_path / "obs.csv").exists()
+
+
+def test_integral_float_ids_are_read_as_integers(tmp_path):
+    """pandas writes an integer column with gaps as floats (`109.0`): such frame and point ids
+    were refused ("frame '109.0' is not an integer"); 1.5 still is."""
+    path = tmp_path / "obs.csv"
+    path.write_text(HEADER + "a,109.0,3.0,0,0,0,2,3\na,109,4,1,0,0,5,6\n")
+    o = mc.io.load_observations(path)
+    assert o.frames.tolist() == [109] and o.points.tolist() == [3, 4]
+    assert o.mask.tolist() == [[[True, True]]]
