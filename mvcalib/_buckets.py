@@ -68,14 +68,10 @@ def applies(*trees) -> bool:
     """Whether a call with these arguments may pad: every array concrete (`is_concrete`: also
     no trace under way), and none split over several devices (whose layout the caller chose;
     `mvcalib.shard`)."""
-    if not _validate.is_concrete():
+    leaves = jax.tree_util.tree_leaves(trees)
+    if not _validate.is_concrete(*leaves):
         return False
-    for x in jax.tree_util.tree_leaves(trees):
-        if isinstance(x, jax.core.Tracer):
-            return False
-        if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
-            return False
-    return True
+    return not any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in leaves)
 
 
 def pads(world, pixels, mask) -> bool:
