@@ -920,6 +920,8 @@ def _calibrate_rig(args) -> int:
     def number(x):
         return float(x) if np.isfinite(x) else None
 
+    n_inliers = int(np.asarray(result.inliers).sum())
+
     meta = {
         "observations": str(args.observations),
         "intrinsics": None if args.intrinsics is None else str(args.intrinsics),
@@ -932,7 +934,7 @@ def _calibrate_rig(args) -> int:
         "rms": number(result.rms),
         "rms_observed": number(result.rms_observed),
         "rms_inliers": number(result.rms_inliers),
-        "n_inliers": int(np.asarray(result.inliers).sum()),
+        "n_inliers": n_inliers,
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
         "n_skipped": int(result.n_skipped),
@@ -942,8 +944,9 @@ def _calibrate_rig(args) -> int:
     written = _write_rig(args, result.cameras, obs.cameras, status, result.camera_rms, meta)
     print()
     _print_intrinsics(result, obs.cameras)
+    messages = result.messages()
     for i in np.flatnonzero(~ok):
-        print(f"{obs.cameras[i]}: {result.messages()[i]}")
+        print(f"{obs.cameras[i]}: {messages[i]}")
     n_observed = int(np.asarray(result.observed).sum())
     print(
         f"all cameras: {_count(n_observed, 'observation')}, RMS "
@@ -953,7 +956,7 @@ def _calibrate_rig(args) -> int:
     if loss is not None:
         print(
             f"inliers of the {type(loss).__name__} loss (within {3 * loss.scale:g} px): "
-            f"{_count(int(np.asarray(result.inliers).sum()), 'observation')}, RMS "
+            f"{_count(n_inliers, 'observation')}, RMS "
             f"{float(result.rms_inliers):.4f} px"
         )
     print(
@@ -1042,7 +1045,7 @@ def _load_observations(path):
     from . import io
 
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
+        with open(path, newline="", encoding=io.ENCODING) as f:
             first = next((line for line in f if line.strip()), "")
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: not a readable observations file ({error})") from None

@@ -37,6 +37,11 @@ VERSION = 1
 _SCALARS = ("alpha_u", "alpha_v", "u0", "v0", "skew")
 
 
+# Data files are read as UTF-8 with its byte-order mark dropped if there is one (a spreadsheet's
+# "CSV UTF-8" starts with it: "\ufeffcamera" was an unknown column), not in the locale's encoding.
+ENCODING = "utf-8-sig"
+
+
 def write_atomic(path, data: str | bytes) -> pathlib.Path:
     """Write `data` to `path` through a temporary file and a rename: all or nothing."""
     path = pathlib.Path(path)
@@ -158,7 +163,7 @@ def load_json(path) -> tuple[Camera, list[str]]:
     """Load a rig saved by `save_json`: `(cameras, names)`; `ValueError` if it is not one."""
     path = pathlib.Path(path)
     try:
-        document = json.loads(path.read_text(encoding="utf-8-sig"))
+        document = json.loads(path.read_text(encoding=ENCODING))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: not a readable JSON rig file ({error})") from None
     if not isinstance(document, dict) or document.get("format") != FORMAT:
@@ -216,7 +221,7 @@ def _read_toml(path: pathlib.Path) -> dict:
     except ModuleNotFoundError:  # Python 3.10
         raise ValueError("reading TOML calibration files needs Python >= 3.11.") from None
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8-sig"))
+        return tomllib.loads(path.read_text(encoding=ENCODING))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
         raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
 
@@ -337,7 +342,7 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
     `rational_polynomial`: a pinhole, whose coefficients beyond k3 must be zero)."""
     path = pathlib.Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = path.read_text(encoding=ENCODING)
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: cannot be read ({error})") from None
     tree = _parse_opencv_yaml(text, path)
@@ -590,7 +595,7 @@ def load_colmap(folder) -> tuple[Camera, list[str]]:
 
 
 def _data_lines(path: pathlib.Path) -> list[str]:
-    lines = path.read_text(encoding="utf-8-sig").splitlines()
+    lines = path.read_text(encoding=ENCODING).splitlines()
     if path.name == "images.txt":  # keep empty 2-D point lines: they pair with image lines
         return [ln for ln in lines if not ln.startswith("#")]
     return [ln for ln in lines if ln.strip() and not ln.startswith("#")]
@@ -684,7 +689,7 @@ def load_correspondences(path) -> Correspondences:
     path = pathlib.Path(path)
     kind = _correspondence_kind(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = path.read_text(encoding=ENCODING)
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: cannot be read ({error})") from None
     return _from_csv(text, path) if kind == "csv" else _from_json(text, path)
@@ -1038,7 +1043,7 @@ def _csv_table(path, required, optional=(), *, strict=True):
 
     path = pathlib.Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = path.read_text(encoding=ENCODING)
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: cannot be read ({error})") from None
     lines = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip()]
@@ -1452,7 +1457,7 @@ _OPENPTV_ADDPAR_DEFAULT = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # OpenPTV's, when
 def _openptv_numbers(path: pathlib.Path, what: str, count: int) -> np.ndarray:
     """The whitespace-separated numbers of an OpenPTV text file, exactly `count` of them."""
     try:
-        tokens = path.read_text(encoding="utf-8-sig").split()
+        tokens = path.read_text(encoding=ENCODING).split()
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"cannot read OpenPTV {what} {path}: {error}") from None
     try:
@@ -1472,7 +1477,7 @@ def _openptv_ptv_par(path: pathlib.Path) -> tuple[tuple[int, int], tuple[float, 
     number of cameras, an image name and a calibration image name per camera, then hp_flag,
     allCam_flag, tiff_flag, imx, imy, pix_x, pix_y, chfield, n1, n2, n3, d."""
     try:
-        tokens = path.read_text(encoding="utf-8-sig").split()
+        tokens = path.read_text(encoding=ENCODING).split()
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"cannot read OpenPTV parameters {path}: {error}") from None
     try:
