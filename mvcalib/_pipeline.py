@@ -14,7 +14,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _status, _validate
 from ._camera import Camera, placeholder
-from ._report import ReprojectionReport, compute_report, format_table, masked_rms
+from ._report import ReprojectionReport, compute_report, format_table, residual_rms
 from ._status import Status
 
 if TYPE_CHECKING:
@@ -275,7 +275,7 @@ def _refine_padded(seed, world, pixels, mask, options):
 def _checked(result, refined, world, pixels, mask, max_relative_rms) -> Calibration:
     """`result` with the refined cameras and report, each camera checked (`_dlt.poor_fit`) over
     the points the fit kept (a robust loss's inliers; all visible points for least squares)."""
-    rms_kept = masked_rms(refined.cameras, world, pixels, refined.inliers)
+    rms_kept = residual_rms(refined.report.residuals, refined.inliers)
     sort = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
     poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms, sort)
     status = jnp.where(result.ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)

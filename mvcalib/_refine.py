@@ -19,7 +19,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _buckets, _sharding, _small, _validate
 from ._camera import LENSES, Camera, _fisheye_polynomial, lens_of, unit_camera, usable_rig
-from ._report import ReprojectionReport, compute_report, masked_rms
+from ._report import ReprojectionReport, masked_rms, residual_report, residual_rms
 from ._rotation import exp_and_left_jacobian
 
 
@@ -783,16 +783,19 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     H = Jt @ Jt.T
     cov = sigma2 * _definite_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
 
-    rms = lambda c: masked_rms(c, world, pixels, mask)  # noqa: E731
     residual_length = jnp.linalg.norm(raw, axis=-1)
     threshold = jnp.inf if loss is None else 3.0 * loss.scale
     inliers = mask & (residual_length <= threshold)
     enough = n_obs > len(free)
     refined = jax.tree_util.tree_map(lambda x: jnp.where(enough, x, jnp.nan), refined)
+    raw = jnp.where(enough, raw, jnp.nan)  # (those of the NaN camera)
     result = jnp.where(enough, sol.result._value, TOO_FEW_POINTS)  # noqa: SLF001
+    # (the refined camera's residuals, `raw`, give its RMS and, in `_refine_all`, its Table I:
+    # projected once, not three times)
     return (
-        refined, rms(cam), rms(refined), sol.stats["num_steps"].astype(jnp.int32), result,
-        inliers, cov, jnp.sqrt(jnp.diagonal(cov)),
+        refined, masked_rms(cam, world, pixels, mask), residual_rms(raw, mask),
+        sol.stats["num_steps"].astype(jnp.int32), result, inliers, cov,
+        jnp.sqrt(jnp.diagonal(cov)), raw,
     )  # fmt: skip
 
 
@@ -1073,8 +1076,8 @@ def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) 
     out = _refine_batched(
         cameras, world.astype(dtype), pixels.astype(dtype), mask, free, loss, solver, max_steps
     )
-    refined, rms_before, rms_after, steps, result, inliers, cov, std = out
-    report = compute_report(refined, world, pixels, mask)
+    refined, rms_before, rms_after, steps, result, inliers, cov, std, residuals = out
+    report = residual_report(residuals, jnp.broadcast_to(mask, residuals.shape[:-1]))
     return Refinement(
         cameras=refined,
         rms_before=rms_before,

@@ -57,7 +57,12 @@ def reprojection_report(
 
 def masked_rms(cameras, world, pixels, mask):
     """Reprojection RMS per camera over the visible points (inputs validated already)."""
-    r = jnp.where(mask[..., None], cameras.project(world) - pixels, 0.0)
+    return residual_rms(cameras.project(world) - pixels, mask)
+
+
+def residual_rms(residuals, mask):
+    """The RMS per camera of `residuals (..., N, 2)` over `mask (..., N)` (zero elsewhere)."""
+    r = jnp.where(mask[..., None], residuals, 0.0)
     return jnp.sqrt(jnp.sum(r * r, axis=(-1, -2)) / jnp.maximum(jnp.sum(mask, -1), 1))
 
 
@@ -65,8 +70,12 @@ def compute_report(cameras, world, pixels, mask) -> ReprojectionReport:
     """`reprojection_report` on inputs that were validated already."""
     shape = jnp.broadcast_shapes(mask.shape, cameras.batch_shape + mask.shape[-1:])
     mask = jnp.broadcast_to(mask, shape)
-    projected = cameras.project(world)
-    residuals = jnp.where(mask[..., None], projected - pixels, 0.0)
+    return residual_report(cameras.project(world) - pixels, mask)
+
+
+def residual_report(residuals, mask) -> ReprojectionReport:
+    """Table I of the residuals `(..., N, 2)` (projected minus measured) over `mask (..., N)`."""
+    residuals = jnp.where(mask[..., None], residuals, 0.0)
     n = jnp.sum(mask, axis=-1)
     denom = jnp.maximum(n, 1).astype(residuals.dtype)
     mean = jnp.sum(residuals, axis=-2) / denom[..., None]
