@@ -251,7 +251,8 @@ class Camera(eqx.Module):
         dist = jnp.broadcast_to(self.dist[..., None, :], (*xd.shape, self.dist.shape[-1]))
         if self.lens == "fisheye":
             theta_d = jnp.sqrt(xd * xd + yd * yd)
-            theta = _fisheye_angle(theta_d, dist, iterations)
+            limit = _fisheye_limit(self.dist)[..., None]
+            theta = _fisheye_angle(theta_d, dist, limit, iterations)
             # sin(theta) / theta_d -> 1 on the axis (theta ~ theta_d there)
             positive = theta_d > 0
             scale = jnp.where(positive, jnp.sin(theta) / jnp.where(positive, theta_d, 1.0), 1.0)
@@ -481,33 +482,81 @@ def _fisheye_polynomial(theta, dist):
 
 def _fisheye(X, Y, Z, dist):
     """Kannala–Brandt: `(x_d, y_d) = theta_d (X, Y) / rho`, `theta = atan2(rho, Z)`, `rho` the
-    distance from the optical axis. On the axis `theta_d / rho` is its limit `1 / Z`; the `where`s
-    keep the derivative finite there."""
+    distance from the optical axis. On the axis `theta_d / rho` is its limit `1 / Z` in front of
+    the camera; straight behind it (180 degrees) the direction in the image is undefined: NaN
+    (it was the principal point, as straight ahead). The `where`s keep the derivative finite."""
     r2 = X * X + Y * Y
     on_axis = r2 == 0
     rho = jnp.sqrt(jnp.where(on_axis, 1.0, r2))
     theta_d, _ = _fisheye_polynomial(jnp.arctan2(rho, Z), dist)
-    scale = jnp.where(on_axis, 1.0 / Z, theta_d / rho)
+    scale = jnp.where(
+        on_axis, jnp.where(Z > 0, 1.0 / jnp.where(Z > 0, Z, 1.0), jnp.nan), theta_d / rho
+    )
     return X * scale, Y * scale
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _fisheye_angle(theta_d, dist, iterations):
-    """The ray's angle `theta` with `_fisheye_polynomial(theta) = theta_d`: Newton's method from
-    `theta_d`, a fixed number of steps, clipped to `[0, pi]`; the derivative is the exact
+def _fisheye_limit(dist, samples: int = 64, halvings: int = 40):
+    """The end `(...)` of the lens's principal branch, for coefficients `dist (..., 4)`: the first
+    angle in `(0, pi]` at which `theta_d` stops increasing (a zero of its slope, to ~1e-12 rad),
+    or pi. Beyond it the polynomial folds back, and an image radius has a second angle (or none):
+    the slope is sampled every pi / `samples` and its first sign change bisected."""
+    theta = jnp.pi * jnp.arange(1, samples + 1, dtype=dist.dtype) / samples
+    falling = _fisheye_polynomial(theta, dist[..., None, :])[1] <= 0  # (..., samples)
+    folds = jnp.any(falling, -1)
+    first = jnp.argmax(falling, -1)
+    lo = jnp.where(first > 0, theta[jnp.maximum(first - 1, 0)], 0.0)
+    hi = theta[first]
+
+    def halve(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        down = _fisheye_polynomial(mid, dist)[1] <= 0
+        return jnp.where(down, lo, mid), jnp.where(down, mid, hi)
+
+    lo, _ = jax.lax.fori_loop(0, halvings, halve, (lo, hi))
+    return jnp.where(folds, lo, jnp.pi)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _fisheye_angle(theta_d, dist, limit, iterations):
+    """The ray's angle `theta` in `[0, limit]` (the lens's principal branch, `_fisheye_limit`)
+    with `_fisheye_polynomial(theta) = theta_d`, NaN where the branch does not reach `theta_d`
+    (outside the lens's image circle). Newton's method from `theta_d`, a fixed number of steps,
+    kept inside a bracket of the root that each step narrows (a step that would leave it, or
+    shrink less than by half, halves it instead): unguarded Newton steps overshot beyond the fold
+    of a wide lens's polynomial and
+    answered with its other angle, or with none (a lens monotone to 105 degrees: a ray 93 degrees
+    off axis came back at 105.25, 39 px away when projected). The derivative is the exact
     inverse's (implicit), as for `_undistort`."""
+    limit = jax.lax.stop_gradient(limit)
 
-    def newton(theta, _):
+    def newton(carry, _):
+        theta, lo, hi, last = carry
         value, slope = _fisheye_polynomial(theta, dist)
-        return jnp.clip(theta - (value - theta_d) / slope, 0.0, jnp.pi), None
+        miss = value - theta_d
+        lo, hi = jnp.where(miss > 0, lo, theta), jnp.where(miss > 0, theta, hi)
+        step = theta - miss / slope
+        # Newton's step where it stays in the bracket and is at most half the last step (as
+        # Numerical Recipes' rtsafe): else, as where Newton went back and forth across a wide
+        # bracket, bisection (False where the slope is zero)
+        newton = (step >= lo) & (step <= hi) & (2 * jnp.abs(miss) <= jnp.abs(last * slope))
+        # at the root to rounding, stay: XLA may round `value` differently where it recomputes
+        # it for `step`, which then lands a rounding outside the bracket (and would halve it)
+        there = jnp.abs(miss) <= 4 * jnp.finfo(theta.dtype).eps * theta_d
+        new = jnp.where(there, theta, jnp.where(newton, step, 0.5 * (lo + hi)))
+        return (new, lo, hi, new - theta), None
 
-    return jax.lax.scan(newton, theta_d, None, length=iterations)[0]
+    limit = jnp.broadcast_to(limit, theta_d.shape)
+    start = (jnp.clip(theta_d, 0.0, limit), jnp.zeros_like(theta_d), limit, limit)
+    theta = jax.lax.scan(newton, start, None, length=iterations)[0][0]
+    reached = theta_d <= _fisheye_polynomial(limit, dist)[0]
+    return jnp.where(reached, theta, jnp.nan)
 
 
 @_fisheye_angle.defjvp
 def _fisheye_angle_jvp(iterations, primals, tangents):
-    (theta_d, dist), (d_theta_d, d_dist) = primals, tangents
-    theta = _fisheye_angle(theta_d, dist, iterations)
+    (theta_d, dist, limit), (d_theta_d, d_dist, _) = primals, tangents
+    theta = _fisheye_angle(theta_d, dist, limit, iterations)
     value = lambda dist: _fisheye_polynomial(theta, dist)[0]  # noqa: E731
     by_dist = jax.jvp(value, (dist,), (d_dist,))[1]
     return theta, (d_theta_d - by_dist) / _fisheye_polynomial(theta, dist)[1]
