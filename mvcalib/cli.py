@@ -73,7 +73,9 @@ EXAMPLES = {
                                   any target (id x y z per line), labelled from clicked dots
   mvcalib calibrate-images cal/cam[1-4].tif --target cal/target_on_a_side.txt \\
       --clicks parameters/man_ori.par --focal 5800 --bright-dots --refine --out rig.json
-                                  an OpenPTV set-up: its four clicked dots per camera""",
+                                  an OpenPTV set-up: its four clicked dots per camera
+  mvcalib calibrate-images cam*.png --refine --out rig.yml --dots dots.csv
+                                  as OpenCV YAML; then mvcalib report rig.yml dots.csv""",
     "observe-grid": """\
   mvcalib observe-grid --grid 7 9 0.05 --markers 0 1 2 9 --camera cam0/*.png \\
       --camera cam1/*.png --out observations.csv
@@ -340,7 +342,13 @@ def build_parser() -> argparse.ArgumentParser:
         "are flagged, never calibrated wrongly; the rig file records their status.",
     )
     images.add_argument("images", nargs="+", metavar="IMG", help="photographs (PNG, TIFF, ...)")
-    images.add_argument("--out", required=True, metavar="JSON", help="rig file to write")
+    _rig_output(images, "every photo's camera, its status, RMS and messages", "--refine")
+    images.add_argument(
+        "--dots",
+        metavar="CSV",
+        help="also write the labelled dots (camera = photo, point = dot id, target and pixel "
+        "coordinates), for `mvcalib report RIG DOTS` and `mvcalib triangulate`",
+    )
     images.add_argument(
         "--refine",
         action="store_true",
@@ -510,10 +518,17 @@ def _check_usage(parser, args) -> None:
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
     if args.command in ("triangulate", "observe-grid") and suffix != ".csv":
         parser.error(f"--out must be a .csv file; got {args.out}")
-    if args.command in ("calibrate", "calibrate-rig"):
+    if args.command in ("calibrate", "calibrate-rig", "calibrate-images"):
         _check_format(parser, args, suffix)
-        if args.format == "colmap" and args.image_size is None:
+        if args.format == "colmap" and getattr(args, "image_size", 0) is None:
             parser.error("--format colmap needs --image-size WIDTH HEIGHT")
+    if args.command == "calibrate-images" and args.format == "colmap" and not args.refine:
+        parser.error(
+            "--format colmap needs --refine (COLMAP's cameras have no skew; the DLT's have)"
+        )
+    if args.command == "calibrate-images" and args.dots:
+        if pathlib.Path(args.dots).suffix.lower() != ".csv":
+            parser.error(f"--dots must be a .csv file; got {args.dots}")
     if args.command == "calibrate-rig" and args.origin_frame is not None:
         if args.reference != "target":
             parser.error("--origin-frame chooses the world frame with --reference target")
@@ -576,9 +591,9 @@ def _check_writable(parser, flag: str, path: pathlib.Path) -> None:
 
 
 def _check_format(parser, args, suffix: str) -> None:
-    """`calibrate`'s and `calibrate-rig`'s --format, from --out's suffix where not given; a file
-    whose suffix says another format is a usage error (a JSON rig in `rig.txt` was written
-    silently, and `calibrate-rig --out rig.yml` wrote JSON)."""
+    """A rig's --format, from --out's suffix where not given; a file whose suffix says another
+    format is a usage error (a JSON rig in `rig.txt` was written silently, and `calibrate-rig
+    --out rig.yml` and `calibrate-images --out rig.yml` wrote JSON)."""
     if args.format is None:
         if suffix not in _FORMATS:
             parser.error(
@@ -779,19 +794,21 @@ def _calibrate(args) -> int:
 
 def _write_rig(args, cameras, names, status, rms, meta) -> int:
     """The rig to `args.out` in `args.format`: JSON holds every camera with its status, RMS and
-    `meta`; OpenCV's YAML and COLMAP's model the calibrated ones. Returns how many were written."""
+    `meta`; OpenCV's YAML and COLMAP's model the calibrated ones. Returns how many were written.
+    Where no camera was calibrated nothing is written (a rig file there, perhaps a good one from
+    an earlier run, was replaced by one of NaN cameras)."""
     import numpy as np
 
     from . import io
     from ._status import Status
 
     out = pathlib.Path(args.out)
-    if args.format == "json":
-        io.save_json(out, cameras, names=names, status=status, rms=rms, meta=meta)
-        return len(names)
     keep = np.flatnonzero(np.asarray(status) == Status.OK)
     if not keep.size:
         raise _Failed(f"no camera could be calibrated; {out} not written.")
+    if args.format == "json":
+        io.save_json(out, cameras, names=names, status=status, rms=rms, meta=meta)
+        return len(names)
     cameras, names = cameras[keep], [names[i] for i in keep]
     if args.format == "opencv":
         io.save_opencv(
@@ -1312,21 +1329,52 @@ def _calibrate_images(args) -> int:
         workers=_workers(args, len(args.images)),
     )
     print(result)
-    io.save_json(
-        args.out,
-        result.cameras,
-        names=result.names,
-        status=result.calibration.status,
-        rms=result.calibration.report.rms,
-        meta={
-            "target": target.name,
-            "messages": result.messages,
-            "misplaced": {str(i): point.tolist() for i, point in result.misplaced.items()},
-        },
-    )
+    _note_loose_principal_points(result)
+    sizes = {d.image_shape[::-1] for d in result.detections if d is not None}
+    args.image_size = sizes.pop() if len(sizes) == 1 else None  # (width, height)
+    if args.format == "colmap" and args.image_size is None:
+        raise ValueError("--format colmap takes photos of one size; these differ")
+    meta = {
+        "target": target.name,
+        "messages": result.messages,
+        "misplaced": {str(i): point.tolist() for i, point in result.misplaced.items()},
+    }
+    status, rms = result.calibration.status, result.calibration.report.rms
+    written = _write_rig(args, result.cameras, result.names, status, rms, meta)
+    if args.dots:
+        ids = [str(int(i)) for i in target.ids]
+        io.save_correspondences(
+            args.dots, target.points, result.pixels, result.mask, cameras=result.names, points=ids
+        )
     n_ok = int(result.ok.sum())
-    print(f"\n{n_ok} of {len(result.names)} cameras calibrated; rig written to {args.out}")
+    dots = f"; labelled dots written to {args.dots}" if args.dots else ""
+    print(
+        f"\n{n_ok} of {len(result.names)} cameras calibrated; {_count(written, 'camera')} written "
+        f"to {args.out} ({args.format}){dots}"
+    )
     return 0 if n_ok == len(result.names) else 1
+
+
+def _note_loose_principal_points(result) -> None:
+    """A note naming the calibrated cameras whose principal point lies outside their photo: the
+    dots did not fix it (a flat or distant target fills a narrow field of view; a window or water
+    between the camera and the target bends the rays, which a pinhole model then absorbs in
+    odd intrinsics). OpenPTV's cavity photos: three of four, one 1600 px outside."""
+    cameras, outside = result.cameras, []
+    for i, detection in enumerate(result.detections):
+        if detection is None or not result.ok[i]:
+            continue
+        height, width = detection.image_shape
+        u0, v0 = float(cameras.u0[i]), float(cameras.v0[i])
+        if not (0 <= u0 <= width and 0 <= v0 <= height):
+            outside.append(f"{result.names[i]} ({u0:.0f}, {v0:.0f}) of {width} x {height}")
+    if outside:
+        print(
+            f"note: principal points outside the photo: {'; '.join(outside)} px. The dots do not "
+            "fix these cameras' intrinsics (a target that fills a narrow field of view, or rays "
+            "bent by a window or water, which the pinhole model absorbs): their poses and "
+            "triangulation within the target's volume hold, extrapolation beyond it does not."
+        )
 
 
 # --workers: processes that read the photos and find their dots (`_photos._in_workers`)

@@ -492,11 +492,13 @@ def test_messages_about_photos_name_no_python_arguments(files, capsys):
     out, err = capsys.readouterr()
     said = "blank.png: the image is constant: it has no contrast"
     assert said in err and "the image is constant" in out and "`image`" not in out + err
+    (files / "r.json").write_text("an earlier rig")
     assert cli.main(["calibrate-images", "blank.png", "--out", "r.json"]) == 1
     out, err = capsys.readouterr()
     assert said in err and "the image is constant" in out and "`image`" not in out + err
-    messages = json.loads((files / "r.json").read_text())["meta"]["messages"]
-    assert messages == ["the image is constant: it has no contrast, so there are no dots to find."]
+    # nothing calibrated: the file there is left alone (it was replaced by NaN cameras)
+    assert "no camera could be calibrated; r.json not written" in err
+    assert (files / "r.json").read_text() == "an earlier rig"
 
 
 def test_report_without_matplotlib_says_how_to_install_it(files, capsys, monkeypatch):

@@ -233,6 +233,21 @@ def test_cli_calibrate_images_writes_the_rig_and_flags_bad_files(tmp_path):
     np.testing.assert_allclose(np.asarray(cameras.K), np.asarray(api.cameras.K), rtol=1e-9)
     truth = np.asarray(rig.cameras.alpha_u)
     assert np.abs(np.asarray(cameras.alpha_u) / truth - 1).max() < 0.01
+    # OpenCV's YAML by --out's suffix (it wrote JSON into rig.yml), and the labelled dots, which
+    # `report` checks the rig against
+    yml, dots = tmp_path / "rig.yml", tmp_path / "dots.csv"
+    result = _cli("calibrate-images", *paths, "--out", yml, "--dots", dots, "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert "2 cameras written to" in result.stdout and "(opencv)" in result.stdout
+    from_yaml, _ = mc.io.load_opencv(yml)
+    np.testing.assert_allclose(np.asarray(from_yaml.K), np.asarray(cameras.K), rtol=1e-12)
+    data = mc.io.load_correspondences(dots)
+    assert data.pixels.shape == (2, len(TARGET.points), 2)
+    np.testing.assert_array_equal(data.mask, api.mask)
+    report = _cli("report", out, dots, "--quiet")
+    assert report.returncode == 0 and "all cameras" in report.stdout, report.stderr
+    wrong = _cli("calibrate-images", *paths, "--out", yml, "--format", "json")
+    assert wrong.returncode == 2 and "--format json writes a .json file" in wrong.stderr
 
     corrupt = tmp_path / "corrupt.png"
     corrupt.write_bytes(b"GIF89a and then nothing")
