@@ -109,7 +109,10 @@ files:
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
 _DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4")  # a pinhole's and a fisheye's (k1..k4)
-FAR_PX = 10.0  # `triangulate`: ok points reprojecting worse than this are pointed out
+# `triangulate`'s --max-rms by default: a point that reprojects worse is not ok. Its `ok` was
+# geometric only (in front, rays apart), and swapped (row, col) pixels or -1 for unseen views
+# came out ok at 77-538 px (3-D errors of metres), a note beside them on the terminal.
+FAR_PX = 10.0
 
 
 class _Parser(argparse.ArgumentParser):
@@ -328,9 +331,9 @@ def build_parser() -> argparse.ArgumentParser:
     triangulate.add_argument(
         "--max-rms",
         type=float,
-        default=float("inf"),
+        default=FAR_PX,
         metavar="PX",
-        help="for ok: the largest reprojection RMS (default any)",
+        help=f"for ok: the largest reprojection RMS (default {FAR_PX:g}; inf: any)",
     )
 
     images = command(
@@ -1242,6 +1245,13 @@ def _triangulate(args) -> int:
     calibrated = _calibrated(cameras)
     mask &= calibrated[:, None]
     P = len(tracks.points)
+    anonymous = sum(len(u) for u in tracks.unlabelled)
+    if anonymous:  # (they were left out without a word: "0 of 0 points triangulated")
+        print(
+            f"note: {_count(anonymous, 'detection')} without a point id (rows with an empty point) "
+            "not triangulated: a point is triangulated from the rows that name it in two cameras "
+            "or more (which detection is which point across the cameras is not searched for)"
+        )
     say(
         f"triangulating {_count(P, 'point')} from {_count(len(names), 'camera')} "
         f"({_count(int(mask.sum()), 'observation')})" + (", refined" if args.refine else "")
@@ -1278,13 +1288,14 @@ def _triangulate(args) -> int:
             f"reprojection RMS per point: median {np.median(rms[made]):.4f} px, max "
             f"{rms[made].max():.4f} px"
         )
-    far = ok & (rms > FAR_PX)
-    if far.any():  # (without --max-rms, `ok` is geometric: in front, rays apart)
+    far = made & (rms > FAR_PX)
+    if far.any():
         print(
-            f"note: {_count(int(far.sum()), 'ok point')} reproject worse than {FAR_PX:g} px "
-            f"(the worst {rms[far].max():.3g} px): check that the tracks' cameras are the rig's "
-            "and that the rig is calibrated; the rms_px column says which, --max-rms PX "
-            "leaves them out of ok"
+            f"note: {_count(int(far.sum()), 'point')} reproject worse than {FAR_PX:g} px (the "
+            f"worst {rms[far].max():.3g} px; {int((far & ok).sum())} of them ok): check that the "
+            "tracks' cameras are the rig's, that the pixels are (x = column, y = row) with no "
+            "stand-in for an unseen view (leave its row out), and that the rig is calibrated; "
+            "the rms_px column says which points"
         )
     if made.any() and not ok.any():
         R, t = np.asarray(cameras.R), np.asarray(cameras.t)

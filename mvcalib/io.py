@@ -795,7 +795,8 @@ def _from_csv(text: str, path) -> Correspondences:
         problem = f"unknown column {unknown[0]!r}" if unknown else (
             f"no {missing[0]!r} column" if missing else "a repeated column")  # fmt: skip
         raise ValueError(f"{path}:{lines[0][0]}: {problem}; the header is {','.join(_COLUMNS)}"
-                         " (world_* columns optional, point optional with world_*).")  # fmt: skip
+                         " (world_* columns optional, point optional with world_*)"
+                         f"{_header_hint(lines[0][1], _COLUMNS)}.")  # fmt: skip
     if "point" not in header and not has_world:
         raise ValueError(f"{path}: a file without world_* columns needs a 'point' column.")
     column = {h: k for k, h in enumerate(header)}
@@ -811,7 +812,8 @@ def _from_csv(text: str, path) -> Correspondences:
 
         camera = field["camera"]
         xyz = numbers(_WORLD) if has_world else None
-        xy = numbers(_PIXEL)
+        # (blank or NaN pixels: the camera did not see the point)
+        xy = None if _unseen([field[h] for h in _PIXEL]) else numbers(_PIXEL)
         name = field.get("point", "")
         if not name and "point" not in field and xyz is not None:
             name = world.get(("by position", xyz), str(len(points)))
@@ -832,9 +834,7 @@ def _from_csv(text: str, path) -> Correspondences:
         cameras.setdefault(camera, len(cameras))
         unlabelled.setdefault(camera, [])
         if xy is None:
-            if name:
-                raise ValueError(f"{where}: camera {camera!r} and point {name!r} but no pixel.")
-            continue  # a camera that saw nothing
+            continue  # a camera that did not see the point, or saw nothing
         if not name:
             unlabelled[camera].append(xy)
         elif seen.setdefault((camera, name), (line, xy)) != (line, xy):
@@ -1059,13 +1059,40 @@ def _csv_table(path, required, optional=(), *, strict=True):
     if unknown or missing or len(set(header)) != len(header):
         problem = f"unknown column {unknown[0]!r}" if unknown else (
             f"no {missing[0]!r} column" if missing else "a repeated column")  # fmt: skip
-        raise ValueError(f"{path}:{lines[0][0]}: {problem}; the header is {','.join(required)}.")
+        raise ValueError(f"{path}:{lines[0][0]}: {problem}; the header is {','.join(required)}"
+                         f"{_header_hint(lines[0][1], known)}.")  # fmt: skip
     table = []
     for (line, _), row in zip(lines[1:], rows):
         if len(row) != len(header):
             raise ValueError(f"{path}:{line}: {len(row)} fields; the header has {len(header)}.")
         table.append((line, [v.strip() for v in row]))
     return {h: k for k, h in enumerate(header)}, table
+
+
+def _header_hint(line: str, columns) -> str:
+    """What a header line that is not one looks like it is: another separator (a spreadsheet's
+    export in a locale whose decimal mark is a comma writes `;`), or no header at all."""
+    for separator, name in ((";", "semicolons"), ("\t", "tabs")):
+        if separator in line and "," not in line:
+            return (f": the fields are separated by {name}; mvcalib reads comma-separated values "
+                    "with '.' as the decimal mark")  # fmt: skip
+    fields = [field.strip().lower() for field in line.split(",")]
+    if not any(field in columns for field in fields) and any(map(_is_number, fields)):
+        return ": the file's first line must be that header"  # (it is data)
+    return ""
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _unseen(values) -> bool:
+    """Whether pixel fields say "not seen": all blank, or all NaN (as NumPy and pandas write it)."""
+    return all(not v or v.lower() == "nan" for v in values)
 
 
 def _parse_numbers(where, names, values, *, blank_ok=True):

@@ -433,17 +433,31 @@ def test_triangulate_points_out_ok_points_that_fit_badly(files, capsys):
     assert "note:" not in capsys.readouterr().out  # a rig and tracks that fit: no note
     pixels[1, :3] += 40.0  # three points that camera b sees 40 px off: in front, badly fit
     mc.io.save_correspondences("off.csv", None, pixels, cameras=["a", "b"])
+    # by default a point that reprojects worse than 10 px is not ok (it was, with a note only)
     assert cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv"]) == 0
     out = capsys.readouterr().out
-    assert f"{len(world)} ok" in out and "note: 3 ok points reproject worse than 10 px" in out
-    assert cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv", "--max-rms", "2"]) == 0
-    out = capsys.readouterr().out
     assert (
-        f"{len(world) - 3} ok (in front of their cameras, rays >= 1 deg apart, RMS <= 2 px)" in out
+        f"{len(world) - 3} ok (in front of their cameras, rays >= 1 deg apart, RMS <= 10 px)" in out
     )
-    assert "note:" not in out
+    assert "note: 3 points reproject worse than 10 px" in out and "0 of them ok" in out
     with open("p.csv") as f:
         assert [row["ok"] for row in csv.DictReader(f)][:4] == ["0", "0", "0", "1"]
+    assert (
+        cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv", "--max-rms", "inf"]) == 0
+    )
+    out = capsys.readouterr().out
+    assert f"{len(world)} ok (in front of their cameras, rays >= 1 deg apart)" in out
+    assert "3 of them ok" in out
+    assert (
+        cli.main(["triangulate", "rig.json", "off.csv", "--out", "p.csv", "--max-rms", "50"]) == 0
+    )
+    assert "RMS <= 50 px" in capsys.readouterr().out
+    # detections without point ids are not triangulated, and it is said (it was not)
+    mc.io.save_correspondences("anon.csv", None, pixels[:, :0], np.zeros((2, 0), bool),
+                               cameras=["a", "b"], unlabelled=[pixels[0], pixels[1]])  # fmt: skip
+    assert cli.main(["triangulate", "rig.json", "anon.csv", "--out", "p.csv"]) == 1
+    out = capsys.readouterr().out
+    assert f"note: {2 * len(world)} detections without a point id" in out
 
 
 def test_calibrate_writes_the_format_its_out_file_names(files, capsys):

@@ -95,6 +95,18 @@ def test_csv_without_point_names_identifies_points_by_their_world_coordinates(tm
     assert c.cameras == ["a", "b"] and c.mask.all()
 
 
+def test_blank_or_nan_pixels_say_the_camera_did_not_see_the_point(tmp_path):
+    """Every camera x point row, NaN (NumPy's, pandas') or blank where a camera did not see the
+    point, as PTV data often comes: read as unseen (it was refused, NaN or inf / no pixel)."""
+    path = tmp_path / "t.csv"
+    path.write_text("camera,point,pixel_x,pixel_y\na,1,10,20\nb,1,NaN,nan\na,2,,\nb,2,11,21\n")
+    c = mc.io.load_correspondences(path)
+    assert c.cameras == ["a", "b"] and c.points == ["1", "2"]
+    _equal(c.mask, [[True, False], [False, True]])
+    _equal(c.pixels[0, 0], [10, 20])
+    _equal(c.pixels[1, 1], [11, 21])
+
+
 @pytest.mark.parametrize(
     "text, message",
     [
@@ -112,6 +124,15 @@ def test_csv_without_point_names_identifies_points_by_their_world_coordinates(tm
         ),
         ("camera,point,world_x,world_y,world_z,pixel_x,pixel_y\na,1,,,,2,3\n", "no world"),
         ("camera,point,pixel_x,pixel_y\n,1,2,3\n", "without a camera"),
+        # a spreadsheet's export with ';' (a comma-decimal locale), tabs, no header
+        ("camera;point;pixel_x;pixel_y\na;1;2,5;3\n", "separated by semicolons; mvcalib reads"),
+        ("camera\tpoint\tpixel_x\tpixel_y\na\t1\t2\t3\n", "separated by tabs"),
+        (
+            "cam1,p1,2.5,3\n",
+            "unknown column 'cam1'; the header is camera,point,world_x,world_y,"
+            "world_z,pixel_x,pixel_y (world_* columns optional, point optional with world_*): the "
+            "file's first line must be that header.",
+        ),  # fmt: skip
     ],
 )
 def test_malformed_csv_gives_one_line_naming_file_and_line(tmp_path, text, message):
