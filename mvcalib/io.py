@@ -285,6 +285,10 @@ def _opencv_camera(camera: Camera, indent: str, image_size) -> list[str]:
         width, height = (int(v) for v in image_size)
         lines += [f"{indent}image_width: {width}", f"{indent}image_height: {height}"]
     lines += _opencv_matrix("camera_matrix", camera.K, indent)
+    if camera.lens == "fisheye" and float(camera.skew) != 0.0:
+        # cv2.fisheye ignores K's skew entry and takes `alpha = skew / fx` as an argument: read
+        # without it, the file's K and D put points 1.4 px off where a 1.5 px skew was
+        lines.append(f"{indent}alpha: {float(camera.skew) / float(camera.alpha_u)!r}")
     lines.append(f"{indent}distortion_model: {_OPENCV_MODEL[camera.lens]}")
     lines += _opencv_matrix("distortion_coefficients", np.asarray(camera.dist)[None], indent)
     lines += _opencv_matrix("R", camera.R, indent)
@@ -299,7 +303,9 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     `distortion_model` (ROS's tag: `plumb_bob` for a pinhole, `equidistant` for a fisheye),
     `distortion_coefficients` (1 x 5: k1 k2 p1 p2 k3; a fisheye's 1 x 4: k1 k2 k3 k4, as
     `cv2.fisheye` takes them), `R` (world to camera) and `T` (3 x 1), with
-    `image_width`/`image_height` if `image_size=(width, height)` is given. A rig is
+    `image_width`/`image_height` if `image_size=(width, height)` is given. A fisheye with skew
+    also gets `alpha` (skew / fx): `cv2.fisheye`'s functions ignore K's skew entry and take
+    it as their `alpha` argument (`cv2.fisheye.projectPoints(X, rvec, tvec, K, D, alpha)`). A rig is
     written as one map per camera (`cam_0`, ... or `names`) holding those keys, and `cameras`
     listing the names. Numbers are written with Python's shortest exact representation, so
     reading back (with `load_opencv` or `cv2.FileStorage`) gives the same doubles.

@@ -292,6 +292,22 @@ def test_rig_files_round_trip_exactly_with_their_lens(tmp_path):
     assert (tmp_path / "colmap" / "cameras.txt").read_text().count("OPENCV_FISHEYE") == 4
 
 
+def test_a_skewed_fisheye_in_opencv_yaml_projects_as_cv2_fisheye_with_its_alpha(tmp_path):
+    """`cv2.fisheye` ignores K's skew entry and takes `alpha` (skew / fx) as an argument: the
+    file holds it (without it, the file's numbers put points 1.4 px off)."""
+    camera = mc.Camera(300.0, 301.0, 640.0, 480.0, np.eye(3), np.zeros(3), skew=1.5,
+                       dist=[-0.02, 0.003, 0.0, 0.0], lens="fisheye")  # fmt: skip
+    path = mc.io.save_opencv(tmp_path / "f.yml", camera)
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    K, D = storage.getNode("camera_matrix").mat(), storage.getNode("distortion_coefficients").mat()
+    alpha = storage.getNode("alpha").real()
+    X = np.array([[[0.5, 0.8, 1.0], [1.0, 1.0, 0.3], [-0.2, 0.1, 1.0]]])
+    theirs = cv2.fisheye.projectPoints(X, np.zeros(3), np.zeros(3), K, D, alpha=alpha)[0][0]
+    np.testing.assert_allclose(theirs, camera.project(X[0]), rtol=0, atol=1e-9)
+    back, _ = mc.io.load_opencv(path)
+    np.testing.assert_array_equal(back.K, camera.K)
+
+
 def test_an_aniposelib_fisheye_file_projects_as_opencv_fisheye(tmp_path):
     rvec, tvec = np.array([0.2, -0.1, 0.3]), np.array([0.1, -0.2, 1.5])
     K = [[600.0, 0.0, 640.0], [0.0, 610.0, 360.0], [0.0, 0.0, 1.0]]
