@@ -467,6 +467,54 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs(tmp_path, monkeypatch):
     np.testing.assert_allclose(written.center, rig.cameras.center, atol=1e-6)
 
 
+def test_a_fisheye_rig_uses_the_frames_seen_beyond_90_degrees():
+    """Four 190-degree cameras back to back, a board moved round them: the closed form takes a
+    pair's points within 90 degrees only (beyond, no pinhole pixel), and pairs with fewer than
+    four there were left out of the joint solve, and not counted as skipped (a user's trial,
+    2026-12-06: 13 of 253 pairs). Where other cameras posed the frame they take part now."""
+    rng = np.random.default_rng(0)
+    yaw = np.pi / 2 * np.arange(4)
+    forward = np.stack([np.sin(yaw), np.zeros(4), np.cos(yaw)], -1)
+    R = np.stack([np.stack([np.cross([0.0, 1, 0], f), [0.0, 1, 0], f]) for f in forward])
+    cameras = mc.Camera(290.0 + 5 * np.arange(4), 290.5 + 5 * np.arange(4), 640.0, 478.0, R,
+                        -np.einsum("cij,cj->ci", R, 0.25 * forward), lens="fisheye",
+                        dist=np.tile([-0.015, 0.004, -0.002, 0.0003], (4, 1)))  # fmt: skip
+    board = np.c_[np.stack(np.meshgrid(np.arange(10.0), np.arange(7.0)), -1).reshape(-1, 2)
+                  * 0.06 - [0.27, 0.18], np.zeros(70)]  # fmt: skip
+    F = 120
+    pixels, mask = np.full((4, F, 70, 2), np.nan), np.zeros((4, F, 70), bool)
+    for f in range(F):
+        az, el, d = rng.uniform(0, 2 * np.pi), rng.uniform(-0.5, 0.5), rng.uniform(0.9, 2.0)
+        centre = d * np.array([np.sin(az) * np.cos(el), np.sin(el), np.cos(az) * np.cos(el)])
+        z = centre / d
+        x = np.cross([0.0, 1, 0], z)
+        x /= np.linalg.norm(x)
+        Rb = np.stack([x, np.cross(z, x), z], 1) @ np.asarray(mc.rodrigues(rng.normal(0, 0.35, 3)))
+        Xc = np.einsum("cij,nj->cni", R, board @ Rb.T + centre) + np.asarray(cameras.t)[:, None]
+        angle = np.arctan2(np.hypot(Xc[..., 0], Xc[..., 1]), Xc[..., 2])
+        p = np.asarray(cameras.project(board @ Rb.T + centre)) + rng.normal(0, 0.3, (4, 70, 2))
+        facing = np.einsum("ci,ci->c", R @ Rb[:, 2], Xc.mean(1)) > 0
+        m = facing[:, None] & (angle < np.radians(95)) & (p >= -0.5).all(-1)
+        m &= (p[..., 0] < IMAGE[0] - 0.5) & (p[..., 1] < IMAGE[1] - 0.5)
+        m &= m.sum(-1, keepdims=True) >= 8
+        pixels[:, f][m], mask[:, f] = p[m], m
+    front = (mask & (angle_of(cameras, board, pixels, mask) < 90)).sum(-1)
+    edge = mask.any(-1) & (front < 4)  # pairs the closed form cannot pose
+    assert edge.sum() >= 5
+    rig = mc.calibrate_rig(board, pixels, mask, lens="fisheye", image_size=IMAGE)
+    assert bool(rig.ok.all()) and int(rig.n_skipped) == 0
+    used = np.asarray(rig.used).any(-1)
+    np.testing.assert_array_equal(used, mask.any(-1))
+    focal = np.asarray(rig.cameras.alpha_u) / np.asarray(cameras.alpha_u)
+    assert np.abs(focal - 1).max() < 0.01
+
+
+def angle_of(cameras, board, pixels, mask):
+    """Each observation's angle off its camera's axis (degrees), from its true ray."""
+    rays = np.asarray(cameras.rays(np.nan_to_num(pixels).reshape(4, -1, 2))).reshape(*mask.shape, 3)
+    return np.degrees(np.arccos(np.clip(rays[..., 2], -1, 1)))
+
+
 # ------------------------------------------------------------------------------ photographs
 
 
