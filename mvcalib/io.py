@@ -194,6 +194,7 @@ def load_json(path) -> tuple[Camera, list[str]]:
         raise ValueError(f"{where} is malformed ({error}).") from None
     names = [str(e.get("name", f"cam_{i}")) for i, e in enumerate(cameras)]
     lens = _one_lens(path, lenses, names)
+    _check_rotations(path, fields["R"], names)
     # (put on the device from NumPy: `jnp.asarray` of float64 with x64 off compiles a program)
     stacked = {k: jax.device_put(np.stack(v)) for k, v in fields.items()}
     return Camera(**stacked, lens=lens), names
@@ -386,12 +387,31 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
             )
     fields = [(K, np.pad(d, (0, max(0, n_dist - len(d))))[:n_dist], R, T) for K, d, R, T in fields]
     K, dist, R, T = (np.stack(f) for f in zip(*fields))
+    _check_rotations(path, R, names)
     cameras = Camera.from_matrices(
         jnp.asarray(K), jnp.asarray(R), jnp.asarray(T), jnp.asarray(dist), lens=lens
     )
     if "cameras" not in tree:
         cameras = cameras[0]
     return cameras, list(names)
+
+
+# A rig file's R may be off a rotation by its rounding (a file written by hand with five or
+# more digits), not by more: any 3 x 3 matrix was taken, and projected as given.
+_ROTATION_TOLERANCE = 1e-4
+
+
+def _check_rotations(path, R, names) -> None:
+    """`ValueError` naming the first camera whose `R` is not a rotation (NaN ones, a failed
+    camera's, pass): `|R^T R - I|` beyond `_ROTATION_TOLERANCE`, or a reflection."""
+    for name, r in zip(names, np.asarray(R, dtype=float).reshape(-1, 3, 3)):
+        if not np.all(np.isfinite(r)):
+            continue
+        off = np.abs(r.T @ r - np.eye(3)).max()
+        if off > _ROTATION_TOLERANCE or np.linalg.det(r) < 0:
+            what = f"R^T R is {off:.2g} off the identity" if off > _ROTATION_TOLERANCE else (
+                "its determinant is -1: a reflection")  # fmt: skip
+            raise ValueError(f"{path}: camera {name!r}: R is not a rotation ({what}).")
 
 
 def _parse_opencv_yaml(text: str, path) -> dict:

@@ -2,12 +2,14 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
 import equinox as eqx
 import imageio.v3 as iio
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -189,6 +191,25 @@ def test_bad_rig_files_are_refused(tmp_path, content, message):
     path.write_text(content)
     with pytest.raises(ValueError, match=message):
         mc.io.load_json(path)
+
+
+def test_a_rig_file_whose_R_is_not_a_rotation_is_refused(tmp_path):
+    """Any 3 x 3 matrix was taken as R (JSON and OpenCV's YAML), and projected as given."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    cases = ((np.diag([1.0, 1.0, 1.01]), "R^T R is 0.02 off the identity"),
+             (np.diag([1.0, 1.0, -1.0]), "its determinant is -1: a reflection"))  # fmt: skip
+    for R, said in cases:
+        bad = eqx.tree_at(lambda c: c.R, rig, rig.R.at[1].set(R))
+        for save, load, name in ((mc.io.save_json, mc.io.load_json, "rig.json"),
+                                 (mc.io.save_opencv, mc.io.load_opencv, "rig.yml")):  # fmt: skip
+            path = save(tmp_path / name, bad)
+            with pytest.raises(
+                ValueError, match=re.escape(f"'cam_1': R is not a rotation ({said}")
+            ):
+                load(path)
+    # a hand-written R rounded to six digits is a rotation to that rounding
+    rounded = eqx.tree_at(lambda c: c.R, rig, jnp.round(rig.R, 6))
+    mc.io.load_json(mc.io.save_json(tmp_path / "rig.json", rounded))
 
 
 def test_a_failed_write_leaves_the_old_rig_file_whole(tmp_path, monkeypatch):
