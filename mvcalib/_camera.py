@@ -149,13 +149,21 @@ class Camera(eqx.Module):
         if dist is None:
             dist = jnp.zeros((*batch, len(names)), dtype)
         dist = jnp.asarray(dist, dtype)
+        column = dist.ndim == 2 and dist.shape[-1] == 1 and dist.shape[0] > 1
         if dist.shape[-1:] != (len(names),):
             other = [k for k, v in LENSES.items() if dist.shape[-1:] == (len(v),)]
             hint = f" (the coefficients of lens={other[0]!r}?)" if other else ""
+            if column:
+                hint = f": OpenCV's ({dist.shape[0]}, 1) column? pass `dist.reshape(-1)`"
             raise ValueError(
                 f"`dist` of a {lens} camera holds ({', '.join(names)}), shape (..., "
                 f"{len(names)}); got {tuple(dist.shape)}{hint}."
             )
+        if jnp.broadcast_shapes(dist.shape[:-1], batch) != batch:
+            hint = f": OpenCV's (1, {len(names)}) row? pass `dist.reshape(-1)`" if (
+                dist.shape[:-1] == (1,)) else ""  # fmt: skip
+            raise ValueError(f"`dist` {tuple(dist.shape)} has more cameras than the other "
+                             f"parameters (batch shape {batch}){hint}.")  # fmt: skip
 
         def cast(x, shape):
             return jnp.broadcast_to(jnp.asarray(x, dtype), shape)
@@ -438,7 +446,9 @@ def _decompose_paper(P):
 def distort(xy, dist):
     """Brown–Conrady distortion of normalised coordinates `(..., 2)`, OpenCV's model and order.
 
-    `dist = (k1, k2, p1, p2, k3)`, broadcast against `xy[..., 0]`.
+    `dist = (k1, k2, p1, p2, k3)`, broadcast against `xy[..., 0]`. (A fisheye's image of a ray
+    is `Camera(..., lens="fisheye").project`: its distortion acts on the ray's angle, not on
+    normalised coordinates.)
 
     **Example:**
 
@@ -449,6 +459,11 @@ def distort(xy, dist):
 
     ```
     """
+    shape = tuple(jnp.shape(dist))
+    if shape[-1:] != (5,):
+        hint = " (a fisheye's four? `Camera(..., lens='fisheye').project`)" if shape[-1:] == (
+            4,) else ""  # fmt: skip
+        raise ValueError(f"`dist` holds (k1, k2, p1, p2, k3), shape (..., 5); got {shape}{hint}.")
     return jnp.stack(_distort(xy[..., 0], xy[..., 1], dist), -1)
 
 

@@ -161,6 +161,22 @@ def test_opencv_shaped_rotation_and_translation_are_refused_not_broadcast():
     with pytest.raises(ValueError, match=r"got \(3,\): a rotation vector\? `mc.rodrigues`"):
         mc.Camera(1000.0, 1000.0, 500.0, 500.0, np.array([0.1, 0.2, 0.3]), np.zeros(3))
     assert mc.Camera(1000.0, 1000.0, 500.0, 500.0, np.eye(3), np.zeros(3)).batch_shape == ()
+    # and the distortion vectors OpenCV hands back: `cv2.fisheye.calibrate`'s (4, 1), and
+    # FileStorage's (1, 4), which failed inside JAX ("Cannot broadcast to shape with fewer
+    # dimensions")
+    for shape, said in (
+        ((4, 1), r"got \(4, 1\): OpenCV's \(4, 1\) column\? pass `dist.reshape"),
+        ((1, 4), r"`dist` \(1, 4\) has more cameras .* OpenCV's \(1, 4\) row"),
+    ):
+        with pytest.raises(ValueError, match=said):
+            mc.Camera(300.0, 300.0, 640.0, 480.0, np.eye(3), np.zeros(3), dist=np.zeros(shape),
+                      lens="fisheye")  # fmt: skip
+
+
+def test_distort_says_it_takes_a_pinholes_five_coefficients():
+    """A fisheye's four gave an IndexError."""
+    with pytest.raises(ValueError, match=r"got \(4,\) \(a fisheye's four\? `Camera"):
+        mc.distort(np.zeros(2), np.zeros(4))
 
 
 def test_camera_is_a_pytree_for_jit_and_vmap():
