@@ -608,6 +608,49 @@ def _check_format(parser, args, suffix: str) -> None:
         parser.error(f"--format {args.format} writes a {wanted} file; got --out {args.out}")
 
 
+class _PipeSafe:
+    """Standard output that, once its reader has gone (`mvcalib ... | head`), swallows the rest:
+    the command goes on and writes its files (it stopped with "[Errno 32] Broken pipe", exit
+    code 1, before writing them where the table came first)."""
+
+    def __init__(self, stream):
+        self._stream, self._gone = stream, False
+
+    def write(self, text):
+        if not self._gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._gone_now()
+        return len(text)
+
+    def flush(self):
+        if not self._gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._gone_now()
+
+    def _gone_now(self):
+        self._gone = True
+        try:  # (else the interpreter's last flush of the stream reports the broken pipe)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+class _stdout_closed_early_is_fine:  # noqa: N801 (a context manager, used as a statement)
+    def __enter__(self):
+        self._saved, sys.stdout = sys.stdout, _PipeSafe(sys.stdout)
+
+    def __exit__(self, *exc):
+        sys.stdout.flush()
+        sys.stdout = self._saved
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -622,7 +665,8 @@ def main(argv: list[str] | None = None) -> int:
 
         jax.config.update("jax_enable_x64", True)
         _enable_compilation_cache()
-        return COMMANDS[args.command](args)
+        with _stdout_closed_early_is_fine():
+            return COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("mvcalib: interrupted", file=sys.stderr)
         return 130

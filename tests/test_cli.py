@@ -425,6 +425,20 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
         assert err.rstrip().endswith(f"(see `{command} --help`)"), err
 
 
+def test_output_piped_into_a_reader_that_stops_early_still_writes_the_files(files):
+    """`mvcalib calibrate ... | head -1`: the broken pipe stopped the command ("[Errno 32] Broken
+    pipe", exit code 1) before it wrote --out, where its table came first."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mvcalib", "calibrate", "corr.csv", "--out", "r.json", "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    process.stdout.readline()
+    process.stdout.close()  # the reader has gone
+    assert process.wait(timeout=600) == 0
+    assert "Broken pipe" not in process.stderr.read()
+    assert len(mc.io.load_json(files / "r.json")[1]) == 2
+
+
 def test_triangulate_points_out_ok_points_that_fit_badly(files, capsys):
     world = mc.targets.box_corner().points
     tracks = mc.io.load_correspondences("tracks.csv")
