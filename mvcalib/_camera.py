@@ -667,6 +667,9 @@ def image_to_pixel(image_xy, pixel_size, *, image_size=None, center=None, sx: fl
     to centre distance of sensor elements (e.g. mm) and `(Cx, Cy)` the image centre, by default
     the midpoint of the pixel array `(width / 2, height / 2)` as the paper takes it (it has a
     1000 x 1100 image and centre (500, 550)). Give either `image_size=(width, height)` or `center`.
+    (With mvcalib's pixels, whose integer coordinates are pixel centres, the array's geometric
+    centre is half a pixel less, `((width - 1) / 2, (height - 1) / 2)`, where OpenPTV's files put
+    it (`mvcalib.io.load_openptv_calibration`): pass it as `center` to match them.)
 
     **Example:**
 
