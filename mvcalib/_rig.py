@@ -120,14 +120,15 @@ _DEGENERATE_IN_A_RIG = (
 class SolveFailed(ValueError):
     """`calibrate_rig`'s joint solve left every camera POOR_FIT."""
 
-    def __init__(self, rms: float, iterations: int):
-        self.rms, self.iterations = rms, iterations
+    def __init__(self, rms: float, iterations: int, lens: str = "pinhole"):
+        self.rms, self.iterations, self.lens = rms, iterations, lens
+        wide = "; for wide-angle lenses, `lens='fisheye'`" if lens == "pinhole" else ""
         super().__init__(
             "the rig's joint solve failed: every camera reprojects its points with an RMS above "
             f"`max_relative_rms` of their spread (RMS {rms:.3g} px after {iterations} steps). "
             "Check that the detections match the target's points (ids, order, units); for wrong "
             "detections, a robust `loss=mc.Huber(2.0)` (or `mc.Cauchy(2.0)` for many); or start "
-            "from known `cameras=`."
+            f"from known `cameras=`{wide}."
         )
 
 
@@ -1462,7 +1463,7 @@ def calibrate_rig(
         )
         statuses = np.asarray(result.status) if concrete else None
         if concrete and (statuses == Status.POOR_FIT).all():
-            raise SolveFailed(float(result.rms), int(result.iterations))
+            raise SolveFailed(float(result.rms), int(result.iterations), result.cameras.lens)
         if concrete and (status := int(statuses[solve_reference])) != Status.OK:
             why = Status(status).message
             if planar and status == Status.DEGENERATE:  # (the DLT's words are for 3-D points)

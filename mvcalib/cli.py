@@ -962,7 +962,8 @@ def _calibrate_rig(args) -> int:
             f"the rig's joint solve failed: every camera reprojects its points with an RMS of "
             f"{error.rms:.3g} px after {error.iterations} steps. Check that the detections match "
             "the target's points (ids, order, units); for wrong detections, --huber 2 (or "
-            "--cauchy 2 for many); or start from known cameras with --intrinsics."
+            "--cauchy 2 for many); or start from known cameras with --intrinsics"
+            + ("." if args.fisheye else "; for wide-angle lenses, --fisheye --image-size W H.")
         ) from None
     status = np.asarray(result.status)
     ok = status == Status.OK
