@@ -496,8 +496,9 @@ def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
         t.append(lam * M[:, 2])
         H.append(M / np.linalg.norm(M))
         good = sv[-2] > rcond * sv[0]
-        status.append(Status.OK if good else Status.DEGENERATE)
-        condition.append(sv[0] / sv[-2])
+        few = seen.sum() < MIN_PLANE_POINTS
+        status.append(Status.TOO_FEW_POINTS if few else Status.OK if good else Status.DEGENERATE)
+        condition.append(0.0 if few else sv[0] / sv[-2])  # (a view without a homography)
     R, t = np.stack(R), np.stack(t)
     R, t = R @ np.asarray(plane.R), np.einsum("vij,j->vi", R, np.asarray(plane.t)) + t
     V = len(pixels)
@@ -708,12 +709,15 @@ def _check_views(pixels, mask, skew: bool):
             f"per view); got {V}." + (" Use skew=False to calibrate from 2 views." if skew else "")
         )
     if _validate.is_concrete(mask):
+        # a view with fewer points is TOO_FEW_POINTS (a fisheye's board near the edge of the
+        # field keeps three corners in view: it stopped the whole calibration); too few such
+        # views leave nothing to calibrate
         counts = np.asarray(mask).sum(-1)
         few = np.flatnonzero(counts < MIN_PLANE_POINTS)
-        if few.size:
+        if V - few.size < need:
             raise ValueError(
-                f"view {int(few[0])} has {int(counts[few[0]])} visible points; a homography "
-                f"needs at least {MIN_PLANE_POINTS} per view (views {few.tolist()} have fewer)."
+                f"{V - few.size} views have {MIN_PLANE_POINTS} or more visible points (a "
+                f"homography's least); {need} are needed (views {few.tolist()} have fewer)."
             )
 
 
@@ -802,8 +806,9 @@ def calibrate_planar(
 
     **Returns:** a `PlanarCalibration`.
 
-    Raises `ValueError` for malformed input: fewer than 4 visible points in a view, fewer than
-    3 views with `skew=True` (2 without), points that are not on one plane, or collinear.
+    Raises `ValueError` for malformed input: fewer than 3 views with `skew=True` (2 without) of 4
+    visible points or more, points that are not on one plane, or collinear. A view with fewer
+    points gets `Status.TOO_FEW_POINTS` and takes no part.
 
     **Example:** three views of a 7 x 5 grid by a pinhole camera; the closed form alone
     (`refine=False`) is exact on noise-free data. (The default `refine=True` adds the

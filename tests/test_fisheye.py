@@ -401,6 +401,14 @@ def test_planar_fisheye_calibration_takes_rays_beyond_90_degrees():
     np.testing.assert_allclose(np.asarray(out.K)[[0, 1], [0, 1]], [300.0, 301.0], rtol=2e-3)
     with pytest.raises(ValueError, match="image_size"):
         mc.calibrate_planar(BOARD, pixels, mask, lens="fisheye")
+    # a board at the edge of the field with three corners in view: that view is flagged, the
+    # rest calibrated (it raised, for the whole calibration)
+    edge = mask.copy()
+    edge[4, np.flatnonzero(edge[4])[3:]] = False
+    few = mc.calibrate_planar(BOARD, np.where(edge[..., None], pixels, np.nan), edge,
+                              lens="fisheye", image_size=IMAGE)  # fmt: skip
+    status = np.asarray(few.status)
+    assert status[4] == mc.Status.TOO_FEW_POINTS and (np.delete(status, 4) == mc.Status.OK).all()
 
 
 # ------------------------------------------------------------------------------ rigs

@@ -162,6 +162,20 @@ def test_hidden_points_have_no_influence(distorted):
     np.testing.assert_array_equal(np.asarray(again.camera.t), np.asarray(out.camera.t))
 
 
+def test_a_view_of_three_points_is_flagged_and_the_rest_calibrated_as_if_alone(distorted):
+    """A fisheye's board near the edge of the field keeps three corners in view: such a view
+    stopped the whole calibration (ValueError); it is TOO_FEW_POINTS now."""
+    pixels, mask, _ = distorted
+    few = mask.copy()
+    few[2, np.flatnonzero(few[2])[3:]] = False
+    out = mc.calibrate_planar(WORLD, np.where(few[..., None], pixels, np.nan), few)
+    assert np.asarray(out.status).tolist()[2] == mc.Status.TOO_FEW_POINTS
+    keep = np.delete(np.arange(len(mask)), 2)
+    alone = mc.calibrate_planar(WORLD, pixels[keep], mask[keep])
+    np.testing.assert_allclose(np.asarray(out.camera.K[0]), np.asarray(alone.camera.K[0]),
+                               rtol=1e-9)  # fmt: skip
+
+
 def test_a_degenerate_view_is_flagged_and_the_others_still_calibrate(distorted):
     pixels, mask, _ = distorted
     line = mask.copy()
@@ -493,8 +507,8 @@ def test_bad_input_is_refused_with_a_clear_message():
     with pytest.raises(ValueError, match="2 views at least"):
         mc.calibrate_planar(WORLD, pixels[:1], mask[:1])
     few = mask.copy()
-    few[2, 3:] = False
-    with pytest.raises(ValueError, match="view 2 has 3 visible points"):
+    few[:-1, 3:] = False  # one view of 4 points or more left
+    with pytest.raises(ValueError, match=r"1 views have 4 or more visible points .* 2 are needed"):
         mc.calibrate_planar(WORLD, pixels, few)
     bumpy = WORLD.copy()
     bumpy[7, 2] = 1.0
