@@ -316,8 +316,9 @@ def build_parser() -> argparse.ArgumentParser:
         "triangulation, optionally polished by Levenberg-Marquardt) and write a CSV: point, "
         "world_x, world_y, world_z, views, rms_px (reprojection RMS), angle_deg (the widest "
         "angle between its rays) and ok (in front of its cameras, rays at least --min-angle "
-        "apart). Points seen once are written with empty coordinates. If the tracks file has "
-        "world coordinates, the distance to them is reported.",
+        "apart, reprojection RMS at most --max-rms). Points seen once are written with empty "
+        "coordinates; a view a camera did not see is a row left out, or NaN or blank pixels. If "
+        "the tracks file has world coordinates, the distance to them is reported.",
     )
     triangulate.add_argument(
         "rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder"
@@ -980,7 +981,8 @@ def _calibrate_rig(args) -> int:
         )
     origin = None if result.origin_frame is None else int(obs.frames[result.origin_frame])
     if origin is not None:
-        print(f"frame {result.origin_frame} is frame {origin} of {args.observations}")
+        print(f"(frame {result.origin_frame} counts the frames from 0; its id in "
+              f"{args.observations} is {origin})")  # fmt: skip
 
     def number(x):
         return float(x) if np.isfinite(x) else None
