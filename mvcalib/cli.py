@@ -65,6 +65,11 @@ EXAMPLES = {
     "triangulate": """\
   mvcalib triangulate rig.json tracks.csv --out points3d.csv
                                   a 3-D point per tracked point seen by two cameras or more""",
+    "convert": """\
+  mvcalib convert rig.json --out rig.yml --image-size 1280 1024
+                                  a rig as OpenCV's YAML (cv2.FileStorage)
+  mvcalib convert calibration.toml --format colmap --image-size 1280 1024 --out sparse/
+                                  aniposelib's rig as a COLMAP text model""",
     "calibrate-images": """\
   mvcalib calibrate-images cam*.png --out rig.json
                                   one camera per photo of the box-corner target
@@ -309,6 +314,17 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--plot", metavar="PNG", help="write the figure here (.png, .pdf, .svg)")
     report.add_argument("--image-size", **size, help="image size for the figure")
 
+    convert = command(
+        "convert",
+        "a rig file in another format",
+        "Read a rig (mvcalib's JSON, OpenCV's YAML, a COLMAP text model, caliscope's or "
+        "aniposelib's TOML) and write it as JSON, OpenCV's YAML or a COLMAP model. Cameras "
+        "that are not calibrated (NaN) are kept in JSON and left out of the others.",
+    )
+    convert.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
+    _rig_output(convert, "every camera", "--image-size")
+    convert.add_argument("--image-size", **size, help="written to OpenCV's YAML; COLMAP needs it")
+
     triangulate = command(
         "triangulate",
         "3-D points from a rig and 2-D tracks",
@@ -515,14 +531,15 @@ def _check_usage(parser, args) -> None:
         )
     for flag in ("out", "plot", "save"):
         value = getattr(args, flag, None)
-        if value:
+        folder = flag == "out" and getattr(args, "format", None) == "colmap"  # (a model's)
+        if value and not (folder and pathlib.Path(value).is_dir()):
             _check_writable(parser, flag, pathlib.Path(value))
     suffix = pathlib.Path(getattr(args, "out", "") or "").suffix.lower()
     if args.command == "detect" and suffix not in (".csv", ".json"):
         parser.error(f"--out must be a .csv or .json file; got {args.out}")
     if args.command in ("triangulate", "observe-grid") and suffix != ".csv":
         parser.error(f"--out must be a .csv file; got {args.out}")
-    if args.command in ("calibrate", "calibrate-rig", "calibrate-images"):
+    if args.command in ("calibrate", "calibrate-rig", "calibrate-images", "convert"):
         _check_format(parser, args, suffix)
         if args.format == "colmap" and getattr(args, "image_size", 0) is None:
             parser.error("--format colmap needs --image-size WIDTH HEIGHT")
@@ -728,6 +745,20 @@ def _load_rig(path):
     if cameras.batch_shape == ():
         cameras = jax.tree_util.tree_map(lambda a: a[None], cameras)
     return cameras, names
+
+
+def _convert(args) -> int:
+    import numpy as np
+
+    from ._status import Status
+
+    cameras, names = _load_rig(args.rig)
+    status = np.where(_calibrated(cameras), Status.OK, Status.NON_FINITE).astype(np.int32)
+    rms = np.full(len(names), np.nan)
+    meta = {"converted_from": str(args.rig)}
+    written = _write_rig(args, cameras, names, status, rms, meta)
+    print(f"{_count(written, 'camera')} of {args.rig} written to {args.out} ({args.format})")
+    return 0
 
 
 def _load_toml_rig(path: pathlib.Path):
@@ -1569,6 +1600,7 @@ def _demo(args) -> int:
 
 
 COMMANDS = {
+    "convert": _convert,
     "calibrate": _calibrate,
     "calibrate-rig": _calibrate_rig,
     "detect": _detect,

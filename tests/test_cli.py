@@ -425,6 +425,27 @@ def test_failures_are_one_line_with_the_documented_exit_code(files, capsys, args
         assert err.rstrip().endswith(f"(see `{command} --help`)"), err
 
 
+def test_convert_writes_a_rig_in_every_format_and_reads_it_back(files, capsys):
+    """A rig from one format to another (a user had no way but Python); the cameras project the
+    same points to 1e-9 px whatever the way, names kept where the format allows."""
+    world = mc.targets.box_corner().points
+    rig, names = mc.io.load_json("rig.json")
+    (files / "sparse").mkdir()  # (an existing folder takes a COLMAP model)
+    steps = [("rig.json", ["--out", "r.yml", "--image-size", "1000", "1100"]),
+             ("r.yml", ["--format", "colmap", "--out", "sparse", "--image-size", "1000", "1100"]),
+             ("sparse", ["--out", "back.json"])]  # fmt: skip
+    for source, options in steps:
+        assert cli.main(["convert", source, *options, "--quiet"]) == 0
+        assert "2 cameras of " in capsys.readouterr().out
+    for path in ("r.yml", "sparse", "back.json"):
+        cameras, got = cli._load_rig(path)
+        assert got == names
+        np.testing.assert_allclose(cameras.project(world), rig.project(world), rtol=0, atol=1e-9)
+    with pytest.raises(SystemExit) as exit:
+        cli.main(["convert", "rig.json", "--out", "r.txt"])
+    assert exit.value.code == 2 and "a .json or .yml/.yaml file" in capsys.readouterr().err
+
+
 def test_output_piped_into_a_reader_that_stops_early_still_writes_the_files(files):
     """`mvcalib calibrate ... | head -1`: the broken pipe stopped the command ("[Errno 32] Broken
     pipe", exit code 1) before it wrote --out, where its table came first."""
