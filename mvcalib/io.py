@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import operator
 import os
 import pathlib
 import re
@@ -826,8 +827,12 @@ def _from_csv(text: str, path) -> Correspondences:
     if "point" not in header and not has_world:
         raise ValueError(f"{path}: a file without world_* columns needs a 'point' column.")
     column = {h: k for k, h in enumerate(header)}
+    body = list(rows)
+    plain = _plain_columns(column, body, has_world)
+    if plain is not None:
+        return plain
     cameras, points, world, seen, unlabelled = {}, {}, {}, {}, {}
-    for (line, _), row in zip(lines[1:], rows):
+    for (line, _), row in zip(lines[1:], body):
         where = f"{path}:{line}"
         if len(row) != len(header):
             raise ValueError(f"{where}: {len(row)} fields; the header has {len(header)}.")
@@ -881,6 +886,54 @@ def _from_csv(text: str, path) -> Correspondences:
         cameras=list(cameras),
         points=list(points),
         unlabelled=[np.array(unlabelled[c], dtype=float).reshape(-1, 2) for c in cameras],
+    )
+
+
+def _plain_columns(column, body, has_world) -> Correspondences | None:
+    """`_from_csv`'s answer for a file of plain rows, column by column in NumPy: every row a
+    camera, a point and its pixel (or NaN pixels: unseen), no camera seeing a point twice, the
+    world coordinates a point's own in every row; None for anything else, which the reader then
+    takes row by row (and names the line that is wrong). A million rows read in ~1 s, not ~10."""
+    n = len(column)
+    if "point" not in column or not body or any(len(row) != n for row in body):
+        return None
+    fields = [list(map(operator.itemgetter(k), body)) for k in range(n)]  # (zip(*body): 20x)
+    names = [[v.strip() for v in fields[column[h]]] for h in ("camera", "point")]
+    if not all(map(all, names)):  # (a blank camera or point: an unlabelled detection, or wrong)
+        return None
+    try:
+        xy = np.array([fields[column[h]] for h in _PIXEL], dtype=float).T
+        xyz = np.array([fields[column[h]] for h in _WORLD], dtype=float).T if has_world else None
+    except ValueError:  # (a blank or a word)
+        return None
+    unseen = np.isnan(xy).all(-1)
+    if not (np.isfinite(xy) | unseen[:, None]).all() or (has_world and not np.isfinite(xyz).all()):
+        return None
+    indices = []
+    for row_names in names:
+        order = {name: i for i, name in enumerate(dict.fromkeys(row_names))}
+        indices.append((list(order), np.fromiter(map(order.get, row_names), int, len(row_names))))
+    (cameras, c), (points, p) = indices
+    seen = ~unseen
+    pairs = np.sort(c[seen] * len(points) + p[seen])
+    if (pairs[1:] == pairs[:-1]).any():  # a camera saw a point twice
+        return None
+    world = None
+    if has_world:
+        world = xyz[np.unique(p, return_index=True)[1]]  # (each point's first row)
+        if not np.array_equal(xyz, world[p]):
+            return None
+    pixels = np.full((len(cameras), len(points), 2), np.nan)
+    mask = np.zeros((len(cameras), len(points)), bool)
+    pixels[c[seen], p[seen]] = xy[seen]
+    mask[c[seen], p[seen]] = True
+    return Correspondences(
+        world=world,
+        pixels=pixels,
+        mask=mask,
+        cameras=cameras,
+        points=points,
+        unlabelled=[np.zeros((0, 2)) for _ in cameras],
     )
 
 
