@@ -76,8 +76,9 @@ class Camera(eqx.Module):
     `u = alpha_u * x_d + skew * y_d + u0`, `v = alpha_v * y_d + v0`. Pixels are `(x = column,
     y = row)` with the origin at the centre of the top-left pixel (OpenCV's convention).
 
-    The lens is a static choice, so that a rig of one model is one batched pytree (a mixed rig
-    is a list of rigs):
+    The lens is a static choice, so that a rig of one model is one batched pytree (a rig holds
+    one lens: `calibrate_rig` and `triangulate` take one rig, so cameras of both kinds are not
+    yet calibrated or triangulated together):
 
     - `"pinhole"` (default): `(x, y) = x_cam[:2] / x_cam[2]` with Brown–Conrady distortion
       `dist = (k1, k2, p1, p2, k3)`, OpenCV's `cv2.projectPoints` (see `distort`).
