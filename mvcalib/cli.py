@@ -790,10 +790,15 @@ def _no_spaces(name: str) -> str:
 
 def _align(names, data, path):
     """The file's pixels and mask in the rig's camera order, `(C_rig, P, ...)`; the file's
-    cameras are matched to the rig's by name (also as written to OpenCV or COLMAP files)."""
+    cameras are matched to the rig's by name, either one also as written to OpenCV or COLMAP
+    files (`cal/cam1.tif` is `cal_cam1_tif` in OpenCV's YAML: a file naming that one was refused
+    against the JSON rig of the same calibration)."""
     import numpy as np
 
     index = {name: i for i, name in enumerate(names)}
+    for i, name in enumerate(names):
+        for spelling in (_identifier(name), _no_spaces(name)):
+            index.setdefault(spelling, i)
     P = len(data.points)
     pixels = np.full((len(names), P, 2), np.nan)
     mask = np.zeros((len(names), P), bool)

@@ -446,6 +446,18 @@ def test_convert_writes_a_rig_in_every_format_and_reads_it_back(files, capsys):
     assert exit.value.code == 2 and "a .json or .yml/.yaml file" in capsys.readouterr().err
 
 
+def test_files_naming_cameras_as_opencv_yaml_spells_them_match_a_json_rig(files, capsys):
+    """`cal/cam1.tif` is `cal_cam1_tif` in OpenCV's YAML; a file naming the cameras so was
+    refused against the JSON rig of the same calibration (the other way round worked)."""
+    rig, _ = mc.io.load_json("rig.json")
+    mc.io.save_json("named.json", rig, names=["cal/cam 1.tif", "cal/cam 2.tif"])
+    data = mc.io.load_correspondences("corr.csv")
+    mc.io.save_correspondences("yaml_names.csv", data.world, data.pixels, data.mask,
+                               cameras=["cal_cam_1_tif", "cal_cam_2_tif"])  # fmt: skip
+    assert cli.main(["report", "named.json", "yaml_names.csv", "--quiet"]) == 0
+    assert "all cameras: " in capsys.readouterr().out
+
+
 def test_output_piped_into_a_reader_that_stops_early_still_writes_the_files(files):
     """`mvcalib calibrate ... | head -1`: the broken pipe stopped the command ("[Errno 32] Broken
     pipe", exit code 1) before it wrote --out, where its table came first."""
