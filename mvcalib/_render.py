@@ -18,14 +18,19 @@ __all__ = ["render", "true_centres", "ellipse_centres", "visible_dots", "dot_nor
 
 
 # ---------------------------------------------------------------------------- geometry helpers
+# The most levels a plate's dots lie on (`dot_normals`)
+_MAX_LEVELS = 16
+
+
 def dot_normals(target: Target) -> np.ndarray:
     """The unit normal of the face each dot lies on, pointing to the side it is seen from.
 
     For the box corner (and any target whose dots lie on the coordinate planes through its local
     origin) the face follows from which coordinate is zero, checked in the order z, y, x: the
     floor `z = 0`, the wall `y = 0`, the wall `x = 0`. A dot on several faces (the corner dot at
-    the origin) is taken to be on the floor. The normals point into the positive octant, where the
-    cameras of `mvcalib.synthetic.random_rig` stand.
+    the origin) is taken to be on the floor. The dots of a plate of several levels (at most 16
+    values of one coordinate, one of them zero) face as its level at zero does. The normals
+    point into the positive octant, where the cameras of `mvcalib.synthetic.random_rig` stand.
 
     **Arguments:**
 
@@ -51,6 +56,13 @@ def dot_normals(target: Target) -> np.ndarray:
     for axis in (2, 1, 0):  # floor first, so the corner dot belongs to the floor
         pick = on_plane[:, axis] & ~normals.any(axis=1)
         normals[pick, axis] = 1.0
+    # A plate of several levels (`mvcalib.targets.plate`, a PIV plate from a file): its dots
+    # lie on a few planes parallel to one face, and those off that face look as it does (they
+    # failed `calibrate_images`' perspective-bias step, and `render`)
+    for axis in (2, 1, 0):
+        levels = np.unique(np.round(points[:, axis] / scale, 9))
+        if len(levels) <= _MAX_LEVELS and normals[:, axis].any():
+            normals[~normals.any(axis=1), axis] = 1.0
     if not normals.any(axis=1).all():
         bad = np.flatnonzero(~normals.any(axis=1)).tolist()
         shown = ", ".join(map(str, bad[:8])) + (f", ... ({len(bad)} dots)" if len(bad) > 8 else "")

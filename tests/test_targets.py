@@ -64,6 +64,11 @@ def test_dot_grids_and_plates():
     levels = plate.points.reshape(3, 12, 3)
     assert [set(level[:, 2]) for level in levels] == [{0.0}, {-1.0}, {-2.0}]
     np.testing.assert_allclose(levels[1, :, :2] - levels[0, :, :2], 2.0)  # 6 / 3 levels
+    # every level faces +z: the dots off z = 0 failed `dot_normals`, and with them `render`
+    # and `calibrate_images`' perspective-bias step (a user's trial, 2026-12-06)
+    np.testing.assert_array_equal(mc.synthetic.dot_normals(plate), np.tile([0, 0, 1.0], (36, 1)))
+    camera = mc.Camera(900.0, 900.0, 320.0, 240.0, np.diag([1.0, -1.0, -1.0]), [-9.0, 6.0, 120.0])
+    assert mc.synthetic.render(camera, plate, (640, 480)).min() < 100  # (dots drawn)
     with pytest.raises(ValueError, match="rows, cols >= 2"):
         mc.targets.dot_grid(1, 5, 1.0)
 
