@@ -101,6 +101,27 @@ def test_wrong_seeds_are_corrected_or_flagged_never_wrong():
     assert counts["focal 30 % off"]["right"] == 6 and counts["two ids swapped"]["flagged"] == 6
 
 
+def test_clicks_a_column_off_on_a_periodic_plate_are_flagged():
+    """Clicks all one column over on a PIV plate name every dot by its neighbour: the labels
+    fit a camera a pitch away as well as the right ones (a user's trial: 688 of 688 labels wrong,
+    ok, 0.35 px RMS). The shifted labelling leaves the border column beyond it unexplained,
+    which its shift by one lattice step explains: flagged."""
+    plate = mc.targets.plate(6, 20, 6.0, dot_radius=0.6)
+    centre = plate.points.mean(0)
+    camera = mc.Camera(3000.0, 3000.0, 550.0, 200.0, np.diag([1.0, -1.0, -1.0]),
+                       -np.diag([1.0, -1.0, -1.0]) @ (centre + [0.0, 0.0, 400.0]))  # fmt: skip
+    photo = np.array(mc.synthetic.render(camera, plate, (1100, 400), noise_sigma=2.0, key=1))
+    detection = mc.detect_dots(photo)
+    corners = np.array([0, 19, 100, 119])  # level 0's corners (row by row, 20 a row)
+    pixels = np.asarray(camera.project(plate.points))[corners]
+    right = mc.match_dots(detection, plate, (pixels, plate.ids[corners]), focal=3000.0)
+    assert right.ok and right.mask.sum() == len(plate.points)
+    inner = np.array([1, 19, 101, 119])  # dots 1, 19, 101, 119 clicked ...
+    shifted = mc.match_dots(detection, plate, (np.asarray(camera.project(plate.points))[inner],
+                                               plate.ids[inner - 1]), focal=3000.0)  # fmt: skip
+    assert not shifted.ok and "shifted by one step of the target's lattice" in shifted.message
+
+
 def test_bad_seeds_raise_with_the_reason():
     camera, detection, truth = view(4)
     with pytest.raises(ValueError, match="no dot of target .* has the id 500"):
