@@ -306,10 +306,10 @@ def match_dots(
         at[where] = pixels
         enough = len(where) >= 6 and not _coplanar(world[where])
         if not enough and (K is None or len(where) < 4):
+            plane = " on one plane, or within 1 % of their extent of one" if len(where) >= 6 else ""
             raise ValueError(
-                f"{len(where)} clicks{' on one plane' if len(where) >= 6 else ''}: give six or "
-                "more dots not all on one plane, or four or more and `focal` (a focal-length "
-                "guess in pixels)."
+                f"{len(where)} clicks{plane}: give six or more dots not all on one plane, or "
+                "four or more and `focal` (a focal-length guess in pixels)."
             )
         first = _fit(world, at, found, K if not enough else None, None)
         if first is None:

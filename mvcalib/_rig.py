@@ -1474,12 +1474,13 @@ def calibrate_rig(
                     else (f"{frames} frames of the board do")
                 )
                 why = (
-                    f"its {seen} not determine it (check that `pixels` is (C, F, N, 2), cameras "
-                    "first)"
+                    f"its {seen} not determine it: record the board in more poses, three or "
+                    "more tilted to one another (and check that `pixels` is (C, F, N, 2), "
+                    "cameras first)"
                 )
+            other = ". Choose another `reference`" if np.asarray(mask).shape[0] > 1 else ""
             raise ValueError(
-                f"the reference camera {solve_reference} cannot be calibrated: {why}. Choose "
-                "another `reference`."
+                f"the reference camera {solve_reference} cannot be calibrated: {why}{other}."
             )
         return result, solve_reference, poor_pairs
 

@@ -119,8 +119,15 @@ def from_file(path, *, dot_radius: float = float("nan"), units: str = "mm") -> T
     """
     import pathlib
 
+    from .io import ENCODING
+
     path = pathlib.Path(path)
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding=ENCODING)
+    except UnicodeDecodeError:  # (an image given as the target: "'utf-8' codec can't decode")
+        raise ValueError(
+            f"{path} is not a target file (text: `id x y z` per line, or CSV with a header)."
+        ) from None
     if not text.strip():
         raise ValueError(f"target file {path} is empty.")
     first = text.lstrip().split("\n", 1)[0]

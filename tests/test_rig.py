@@ -419,6 +419,17 @@ def test_gradient_through_the_cameras_it_holds_equals_central_differences():
     np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-9)
 
 
+def test_one_camera_with_one_frame_of_the_board_is_told_to_record_more_poses():
+    """One photo of a board, one camera (a user's first try): the message spoke of array shapes
+    and of choosing another reference camera, there being none."""
+    rig = _rig(noise=0.3)
+    f = int(np.argmax(np.asarray(rig.mask)[0].sum(-1)))
+    pixels, mask = np.asarray(rig.pixels)[:1, f : f + 1], np.asarray(rig.mask)[:1, f : f + 1]
+    with pytest.raises(ValueError, match="record the board in more poses") as error:
+        mc.calibrate_rig(rig.target, pixels, mask)
+    assert "Choose another" not in str(error.value)
+
+
 def test_a_camera_with_one_frame_of_the_board_is_degenerate_in_a_rigs_words():
     """One view of a plane does not determine a camera's intrinsics; the message was the DLT's
     ("use a non-coplanar target, or calibrate_planar"), wrong advice in a rig."""
@@ -496,8 +507,8 @@ def test_bad_input_raises_with_the_reason():
     # said as such (the DLT's words were "use a non-coplanar target")
     board = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=20, noise=0.3)
     swapped = np.swapaxes(np.asarray(board.pixels), 0, 1), np.swapaxes(np.asarray(board.mask), 0, 1)
-    with pytest.raises(ValueError, match=r"of the board do(es)? not determine it \(check that "
-                       r"`pixels` is \(C, F, N, 2\), cameras first\)"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"of the board do(es)? not determine it: record the "
+                       r".*check that `pixels` is \(C, F, N, 2\), cameras first\)"):  # fmt: skip
         mc.calibrate_rig(board.target, *swapped)
 
 

@@ -48,6 +48,14 @@ def test_bad_target_files_are_refused_with_the_reason(tmp_path, text, message):
         mc.targets.from_file(path)
 
 
+def test_an_image_given_as_the_target_file_is_named(tmp_path):
+    """It said only "'utf-8' codec can't decode byte 0x89 in position 0"."""
+    path = tmp_path / "photo.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff")
+    with pytest.raises(ValueError, match="photo.png is not a target file"):
+        mc.targets.from_file(path)
+
+
 def test_every_target_has_ids_by_default():
     assert mc.targets.box_corner().ids.tolist() == list(range(19))
     with pytest.raises(ValueError, match="one per dot"):
