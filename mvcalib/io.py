@@ -1451,8 +1451,9 @@ def load_clicks(path, images, target) -> list:
     columns ignored): `image` names one of `images` (its path as given, its file name, or its
     position from 0), `dot_id` a dot of `target` (`target.ids`). Returns one seed per image for
     `mvcalib.calibrate_images` / `mvcalib.match_dots`: `(pixels (k, 2), dot_ids (k,))`, or None
-    for an image without clicks. `ValueError` naming the file and line for an unknown image or
-    dot, or a field that is not a number.
+    for an image without clicks. Rows naming other photos are passed over (one file of clicks
+    serves any of its photos), unless no row names one of `images`. `ValueError` naming the file
+    and line for an unknown dot, a position beyond `images`, or a field that is not a number.
 
     `path` may also be OpenPTV's `man_ori.par`, with its `man_ori.dat` beside it
     (`load_openptv_clicks`): four clicks per camera, the cameras in the order of `images`.
@@ -1475,15 +1476,19 @@ def load_clicks(path, images, target) -> list:
     images = [str(p) for p in images]
     names = [pathlib.Path(p).name for p in images]
     clicked: dict[int, list] = {}
+    others = []  # (line, name) of rows naming photos not given
     for line, fields in table:
         where = f"{path}, line {line}"
         image = fields[columns["image"]]
         if image in images or image in names:
             i = images.index(image) if image in images else names.index(image)
-        elif image.isdigit() and int(image) < len(images):
+        elif image.isdigit():
+            if int(image) >= len(images):
+                raise ValueError(f"{where}: no image {image!r} among the images given")
             i = int(image)
         else:
-            raise ValueError(f"{where}: no image {image!r} among the images given")
+            others.append((line, image))
+            continue
         dot = _parse_id(where, "dot_id", fields[columns["dot_id"]])
         xy = _parse_numbers(
             where, ("pixel_x", "pixel_y"),
@@ -1492,6 +1497,9 @@ def load_clicks(path, images, target) -> list:
         if dot is None or dot not in target.ids:
             raise ValueError(f"{where}: the target has no dot {dot}")
         clicked.setdefault(i, []).append((xy, dot))
+    if others and not clicked:
+        line, image = others[0]
+        raise ValueError(f"{path}, line {line}: no image {image!r} among the images given")
     seeds = [None] * len(images)
     for i, rows in clicked.items():
         seeds[i] = (np.array([xy for xy, _ in rows]), np.array([dot for _, dot in rows]))

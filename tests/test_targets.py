@@ -56,6 +56,22 @@ def test_an_image_given_as_the_target_file_is_named(tmp_path):
         mc.targets.from_file(path)
 
 
+def test_a_clicks_file_serves_any_of_its_photos(tmp_path):
+    """One file of clicks for four cameras, two of them calibrated again: rows naming the others
+    are passed over (it was an error); a file naming none of the photos is still one."""
+    path = tmp_path / "clicks.csv"
+    path.write_text("image,dot_id,pixel_x,pixel_y\ncam1.tif,3,10,20\ncam2.tif,4,11,21\n"
+                    "cam3.tif,5,12,22\n")  # fmt: skip
+    target = mc.targets.box_corner()
+    seeds = mc.io.load_clicks(path, ["cal/cam3.tif", "cal/cam1.tif"], target)
+    assert seeds[0][1].tolist() == [5] and seeds[1][1].tolist() == [3]
+    with pytest.raises(ValueError, match="line 2: no image 'cam1.tif' among the images given"):
+        mc.io.load_clicks(path, ["cam9.tif"], target)
+    with pytest.raises(ValueError, match="no image '5' among the images given"):
+        path.write_text("image,dot_id,pixel_x,pixel_y\n5,3,10,20\n")
+        mc.io.load_clicks(path, ["cam9.tif"], target)
+
+
 def test_every_target_has_ids_by_default():
     assert mc.targets.box_corner().ids.tolist() == list(range(19))
     with pytest.raises(ValueError, match="one per dot"):
