@@ -652,9 +652,15 @@ class _PipeSafe:
     def _gone_now(self):
         self._gone = True
         try:  # (else the interpreter's last flush of the stream reports the broken pipe)
-            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+            devnull = os.open(os.devnull, os.O_WRONLY)
+        except OSError:
+            return
+        try:
+            os.dup2(devnull, self._stream.fileno())
         except (OSError, ValueError, AttributeError):
             pass
+        finally:
+            os.close(devnull)  # (the stream's descriptor holds /dev/null now)
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
