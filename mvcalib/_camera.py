@@ -260,8 +260,7 @@ class Camera(eqx.Module):
         dist = jnp.broadcast_to(self.dist[..., None, :], (*xd.shape, self.dist.shape[-1]))
         if self.lens == "fisheye":
             theta_d = jnp.sqrt(xd * xd + yd * yd)
-            limit = _fisheye_limit(self.dist)[..., None]
-            theta = _fisheye_angle(theta_d, dist, limit, iterations)
+            theta = _fisheye_inverse(theta_d, dist, self.dist, iterations)
             # sin(theta) / theta_d -> 1 on the axis (theta ~ theta_d there)
             positive = theta_d > 0
             scale = jnp.where(positive, jnp.sin(theta) / jnp.where(positive, theta_d, 1.0), 1.0)
@@ -531,6 +530,14 @@ def _fisheye_limit(dist, samples: int = 64, halvings: int = 40):
 
     lo, _ = jax.lax.fori_loop(0, halvings, halve, (lo, hi))
     return jnp.where(folds, lo, jnp.pi)
+
+
+@functools.partial(jax.jit, static_argnames="iterations")
+def _fisheye_inverse(theta_d, dist, lens, iterations):
+    """`_fisheye_angle` of the radii `theta_d (..., N)` on the principal branch of each camera's
+    lens `lens (..., 4)` (`dist`, its coefficients per radius): one compiled program, whose two
+    loops compiled apart, called eagerly, doubled a first call of `undistort_points`."""
+    return _fisheye_angle(theta_d, dist, _fisheye_limit(lens)[..., None], iterations)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
