@@ -55,11 +55,17 @@ __all__ = [*_SUBMODULES, *_ORIGIN]
 def __getattr__(name: str) -> typing.Any:
     """Import a public name's module on first use, and keep the name here from then on."""
     if name in _SUBMODULES:
-        value = importlib.import_module(f"{__name__}.{name}")
+        module = name
     elif name in _ORIGIN:
-        value = getattr(importlib.import_module(f"{__name__}.{_ORIGIN[name]}"), name)
+        module = _ORIGIN[name]
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from ._gc import collector_paused  # here, so that `import mvcalib` imports no submodule
+
+    with collector_paused():  # the first names import JAX's libraries: long-lived objects
+        value = importlib.import_module(f"{__name__}.{module}")
+    if name in _ORIGIN:
+        value = getattr(value, name)
     globals()[name] = value
     return value
 

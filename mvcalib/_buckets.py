@@ -42,6 +42,7 @@ import jax
 import numpy as np
 
 from . import _validate
+from ._gc import collector_paused
 
 # The least camera-points a program covers: below it, running costs next to nothing (the DLT of
 # 64 cameras of 64 points takes ~0.2 ms) against the seconds a new program takes to compile.
@@ -247,17 +248,18 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
     def __call__(self, *args, quick: bool = False, **kwargs):
         if not _top_level():
             return self.traced(*args, **kwargs)
-        build = self.quick if quick else self.optimised
         signature = _signature(quick, args, kwargs)
-        if _AHEAD.get():
-            if signature in self._seen and _holds_programs(build):
-                raise _Lowered(None)  # compiled already
-            lowered = build.lower(*args, **kwargs)
-            self._compiling.append(_compiler().submit(lowered.compile))
-            self._seen.add(signature)
-            raise _Lowered(_stand_in(lowered))
-        self._wait()
-        out = build(*args, **kwargs)
+        with collector_paused():
+            build = self.quick if quick else self.optimised
+            if _AHEAD.get():
+                if signature in self._seen and _holds_programs(build):
+                    raise _Lowered(None)  # compiled already
+                lowered = build.lower(*args, **kwargs)
+                self._compiling.append(_compiler().submit(lowered.compile))
+                self._seen.add(signature)
+                raise _Lowered(_stand_in(lowered))
+            self._wait()
+            out = build(*args, **kwargs)
         self._seen.add(signature)
         return out
 
