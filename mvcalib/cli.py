@@ -543,9 +543,11 @@ def _check_usage(parser, args) -> None:
         _check_format(parser, args, suffix)
         if args.format == "colmap" and getattr(args, "image_size", 0) is None:
             parser.error("--format colmap needs --image-size WIDTH HEIGHT")
-    if args.command == "calibrate-images" and args.format == "colmap" and not args.refine:
+    no_skew = {"colmap": "COLMAP's", "opencv": "OpenCV's"}.get(getattr(args, "format", None))
+    if args.command == "calibrate-images" and no_skew and not args.refine:
         parser.error(
-            "--format colmap needs --refine (COLMAP's cameras have no skew; the DLT's have)"
+            f"--format {args.format} needs --refine ({no_skew} cameras have no skew; the DLT's "
+            "have)"
         )
     if args.command == "calibrate-images" and args.dots:
         if pathlib.Path(args.dots).suffix.lower() != ".csv":
@@ -553,11 +555,11 @@ def _check_usage(parser, args) -> None:
     if args.command == "calibrate-rig" and args.origin_frame is not None:
         if args.reference != "target":
             parser.error("--origin-frame chooses the world frame with --reference target")
-    if args.command == "calibrate" and args.format == "colmap":
+    if args.command == "calibrate" and no_skew:
         if not args.refine and args.distortion is None:
             parser.error(
-                "--format colmap needs --refine or --distortion (COLMAP's cameras have no "
-                "skew; the DLT's have)"
+                f"--format {args.format} needs --refine or --distortion ({no_skew} cameras have "
+                "no skew; the DLT's have)"
             )
     if args.command == "demo" and (args.noise < 0 or args.global_noise < 0):
         parser.error("noise levels must be non-negative")
@@ -760,11 +762,28 @@ def _convert(args) -> int:
 
     cameras, names = _load_rig(args.rig)
     status = np.where(_calibrated(cameras), Status.OK, Status.NON_FINITE).astype(np.int32)
-    rms = np.full(len(names), np.nan)
-    meta = {"converted_from": str(args.rig)}
+    rms, meta = np.full(len(names), np.nan), {}
+    if _is_json_rig(args.rig):  # its statuses, RMS and meta carry over
+        from . import io
+
+        _, _, record = io.load_json(args.rig, record=True)
+        if record["status"] is not None:
+            status = np.where(status == Status.OK, record["status"], status).astype(np.int32)
+        rms = rms if record["rms"] is None else record["rms"]
+        meta = record["meta"]
+    meta = {**meta, "converted_from": str(args.rig)}
     written = _write_rig(args, cameras, names, status, rms, meta)
     print(f"{_count(written, 'camera')} of {args.rig} written to {args.out} ({args.format})")
+    if written < len(names):
+        left = [f"{n} ({Status(s).name})" for n, s in zip(names, status) if s != Status.OK]
+        print(f"left out, not calibrated: {', '.join(left)}", file=sys.stderr)
     return 0
+
+
+def _is_json_rig(path) -> bool:
+    """Whether `_load_rig` reads `path` as mvcalib's JSON rig."""
+    path = pathlib.Path(path)
+    return not path.is_dir() and path.suffix.lower() not in (".yml", ".yaml", ".toml", ".csv")
 
 
 def _load_toml_rig(path: pathlib.Path):

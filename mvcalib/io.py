@@ -18,6 +18,7 @@ import pathlib
 import re
 import stat
 import tempfile
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -160,8 +161,25 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
     return write_atomic(path, json.dumps(document, indent=1, allow_nan=False) + "\n")
 
 
-def load_json(path) -> tuple[Camera, list[str]]:
-    """Load a rig saved by `save_json`: `(cameras, names)`; `ValueError` if it is not one."""
+def load_json(path, *, record: bool = False):
+    """Load a rig saved by `save_json`: `(cameras, names)`; `ValueError` if it is not one.
+
+    With `record=True`, `(cameras, names, record)`, where `record` holds what `save_json`
+    stored for the record: `"status"` (`(C,)` ints, `mvcalib.Status`) and `"rms"` (`(C,)`
+    pixels, NaN where not stored), each None where the file has none, and `"meta"` (a dict).
+    A rig read without it and saved again loses them.
+
+    ```python
+    >>> import jax, tempfile, pathlib, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "rig.json"
+    >>> _ = mc.io.save_json(path, rig, status=[0, 6], rms=[0.3, 41.0], meta={"by": "me"})
+    >>> cameras, names, record = mc.io.load_json(path, record=True)
+    >>> [mc.Status(s).name for s in record["status"]], record["rms"].tolist(), record["meta"]
+    (['OK', 'POOR_FIT'], [0.3, 41.0], {'by': 'me'})
+
+    ```
+    """
     path = pathlib.Path(path)
     try:
         document = json.loads(path.read_text(encoding=ENCODING))
@@ -198,7 +216,19 @@ def load_json(path) -> tuple[Camera, list[str]]:
     _check_rotations(path, fields["R"], names)
     # (put on the device from NumPy: `jnp.asarray` of float64 with x64 off compiles a program)
     stacked = {k: jax.device_put(np.stack(v)) for k, v in fields.items()}
-    return Camera(**stacked, lens=lens), names
+    if not record:
+        return Camera(**stacked, lens=lens), names
+    try:
+        stored = {
+            key: np.array([kind(np.nan if e.get(key) is None else e[key]) for e in cameras])
+            if any(key in e for e in cameras) else None
+            for key, kind in (("status", int), ("rms", float))
+        }  # fmt: skip
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: a camera's status or rms is malformed ({error}).") from None
+    meta = document.get("meta") or {}
+    meta = meta if isinstance(meta, dict) else {"meta": meta}
+    return Camera(**stacked, lens=lens), names, {**stored, "meta": meta}
 
 
 def _one_lens(path, lenses, names) -> str:
@@ -235,7 +265,9 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
     the file's order of `cam_0, cam_1, ...`. Cameras with `fisheye = true` (aniposelib's
     `FisheyeCamera`: `cv2.fisheye`'s k1 k2 k3 k4) come back as `lens="fisheye"`; a file mixing
-    both is refused (ValueError), as a rig has one lens. Needs Python >= 3.11 (`tomllib`).
+    both is refused (ValueError), as a rig has one lens. A `matrix` with a skew entry (K[0,1])
+    is read as aniposelib projects it, without (a warning says so). Needs Python >= 3.11
+    (`tomllib`).
     """
     from ._rotation import rodrigues
 
@@ -259,6 +291,14 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: a camera table is malformed ({error}).") from None
     names = [str(document[k].get("name", k)) for k in keys]
+    skewed = [n for n, k in zip(names, K) if k[0, 1] != 0]
+    if skewed:  # aniposelib projects with cv2.projectPoints (or cv2.fisheye's, without alpha)
+        warnings.warn(
+            f"{path}: K[0,1] (skew) is not zero for {', '.join(skewed)}; aniposelib's "
+            "projections ignore it, and so does this reading (zero skew).",
+            stacklevel=2,
+        )
+        K[:, 0, 1] = 0.0
     return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist, lens=lens), names
 
 
@@ -307,10 +347,12 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     `cv2.fisheye` takes them), `R` (world to camera) and `T` (3 x 1), with
     `image_width`/`image_height` if `image_size=(width, height)` is given. A fisheye with skew
     also gets `alpha` (skew / fx): `cv2.fisheye`'s functions ignore K's skew entry and take
-    it as their `alpha` argument (`cv2.fisheye.projectPoints(X, rvec, tvec, K, D, alpha)`). A rig is
-    written as one map per camera (`cam_0`, ... or `names`) holding those keys, and `cameras`
-    listing the names. Numbers are written with Python's shortest exact representation, so
-    reading back (with `load_opencv` or `cv2.FileStorage`) gives the same doubles.
+    it as their `alpha` argument (`cv2.fisheye.projectPoints(X, rvec, tvec, K, D, alpha)`). A
+    pinhole with skew is refused (ValueError): OpenCV's pinhole functions have no skew and ignore
+    K's entry. A rig (or a camera given `names`) is written as one map per camera (`cam_0`, ...
+    or `names`) holding those keys, and `cameras` listing the names. Numbers are written with
+    Python's shortest exact representation, so reading back (with `load_opencv` or
+    `cv2.FileStorage`) gives the same doubles.
 
     **Example:**
 
@@ -326,6 +368,13 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     """
     lines = ["%YAML:1.0", "---"]
     _check_cameras(cameras, "save_opencv")
+    if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
+        raise ValueError(
+            "OpenCV's pinhole model has no skew (cv2.projectPoints ignores K[0,1]: the file "
+            "would put points skew * y off); refine with skew=False (refine's default) first."
+        )
+    if cameras.batch_shape == () and names is not None:  # a named camera: a rig of one
+        cameras = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], cameras)
     if cameras.batch_shape == ():
         lines += _opencv_camera(cameras, "", image_size)
     else:
@@ -335,6 +384,8 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
         names = [f"cam_{i}" for i in range(n)] if names is None else [str(s) for s in names]
         if len(names) != n or any(not s.isidentifier() for s in names):
             raise ValueError(f"need {n} names made of letters, digits and '_'; got {names}.")
+        if "cameras" in names:
+            raise ValueError("a camera may not be named 'cameras': the key that lists them.")
         lines.append("cameras: [ " + ", ".join(f'"{s}"' for s in names) + " ]")
         for i, name in enumerate(names):
             lines.append(f"{name}:")
@@ -347,12 +398,23 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
     `distortion_coefficients`, `R`, `T`, at the top level or in per-camera maps listed by
     `cameras`): `(cameras, names)`; a single camera comes back with no camera axis. The lens is
     `distortion_model`'s (`equidistant` or `fisheye`: a fisheye; none, `plumb_bob` or
-    `rational_polynomial`: a pinhole, whose coefficients beyond k3 must be zero)."""
+    `rational_polynomial`: a pinhole, whose coefficients beyond k3 must be zero). `R` may be a
+    rotation vector (3 x 1, Rodrigues', as OpenCV's `rvecs`); `cameras` a flow (`[ a, b ]`) or
+    block (`- a` lines) sequence, as `cv2.FileStorage` writes it."""
+    from ._rotation import rodrigues
+
     path = pathlib.Path(path)
     try:
         text = path.read_text(encoding=ENCODING)
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: cannot be read ({error})") from None
+    head = text.lstrip()[:1]
+    if head in ("<", "{"):
+        kind = "XML" if head == "<" else "JSON"
+        raise ValueError(
+            f"{path}: a FileStorage {kind} file; mvcalib reads OpenCV's YAML (cv2.FileStorage "
+            "reads this one and writes it again as YAML under a .yml name)."
+        )
     tree = _parse_opencv_yaml(text, path)
     if "cameras" in tree:
         names = tree["cameras"]
@@ -365,11 +427,16 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
             K, dist, R, T = (
                 node[k] for k in ("camera_matrix", "distortion_coefficients", "R", "T")
             )
+            if np.size(R) == 3:  # a rotation vector, as cv2.calibrateCamera's rvecs
+                R = np.asarray(rodrigues(jnp.asarray(R.reshape(3), dtype=float)))
             fields.append((K.reshape(3, 3), dist.reshape(-1), R.reshape(3, 3), T.reshape(3)))
         except (KeyError, TypeError, ValueError, AttributeError):
+            missing = [k for k in ("camera_matrix", "distortion_coefficients", "R", "T")
+                       if not isinstance(node, dict) or k not in node]  # fmt: skip
             raise ValueError(
-                f"{path}: camera {name!r} lacks camera_matrix, "
-                "distortion_coefficients, R or T (3x3, 1x5, 3x3, 3x1)."
+                f"{path}: camera {name!r} "
+                + (f"lacks {', '.join(missing)}" if missing else "has a matrix of a wrong size")
+                + " (camera_matrix 3x3, distortion_coefficients 1x5 or 1x4, R 3x3 or 3x1, T 3x1)."
             ) from None
         model = node.get("distortion_model", "plumb_bob")
         if model not in _OPENCV_LENS:
@@ -417,7 +484,8 @@ def _check_rotations(path, R, names) -> None:
 
 def _parse_opencv_yaml(text: str, path) -> dict:
     """The small YAML subset FileStorage writes: maps by indentation, `!!opencv-matrix` nodes
-    (whose `data` may run over several lines), scalars and one-line sequences."""
+    (whose `data` may run over several lines), scalars, and sequences of scalars on one line
+    (`[ a, b ]`) or one item a line (`- a`)."""
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith(("%", "---"))]
     root: dict = {}
     stack = [(-1, root)]
@@ -435,11 +503,23 @@ def _parse_opencv_yaml(text: str, path) -> dict:
         if matrix is not None:
             _finish_matrix(matrix, path)
             matrix = None
-        key, _, value = line.strip().partition(":")
-        value = value.strip()
-        while indent <= stack[-1][0]:
+        item = line.strip() == "-" or line.strip().startswith("- ")
+        while indent < stack[-1][0] or (
+            indent == stack[-1][0] and not (item and stack[-1][1] in ({}, []))
+        ):  # (a sequence's items may be indented as its key is)
             stack.pop()
         parent = stack[-1][1]
+        if item:  # an item of a block sequence
+            if not isinstance(parent, list):  # (opened as a map: it is a sequence)
+                if parent or len(stack) < 2:
+                    raise ValueError(f"{path}: a '-' item outside a sequence: {line.strip()!r}.")
+                outer, name = stack[-2][1], next(k for k, v in stack[-2][1].items() if v is parent)
+                outer[name] = parent = []
+                stack[-1] = (stack[-1][0], parent)
+            parent.append(line.strip()[1:].strip().strip('"'))
+            continue
+        key, _, value = line.strip().partition(":")
+        value = value.strip()
         if value.startswith("!!opencv-matrix"):
             matrix = {"indent": indent, "parent": parent, "key": key, "fields": {}, "last": None}
         elif value == "":
@@ -753,6 +833,8 @@ def _checked(world, pixels, mask, cameras, points, unlabelled) -> Correspondence
             raise ValueError(f"need {n} different, non-empty `{what}` names; got {len(names)}.")
     if any("\n" in s or "\r" in s for s in cameras + points):
         raise ValueError("camera and point names must not contain line breaks.")
+    if any(s.startswith("#") for s in cameras):  # (a CSV line so written would be a comment)
+        raise ValueError("camera names must not start with '#'.")
     if unlabelled is None:
         unlabelled = [np.zeros((0, 2)) for _ in range(C)]
     unlabelled = [np.array(u, dtype=float).reshape(-1, 2) for u in unlabelled]

@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import imageio.v3 as iio
+import jax
 import numpy as np
 import pytest
 from conftest import data_dir
@@ -92,15 +93,16 @@ def test_measured_global_coordinates_show_the_papers_r_is_not_a_rotation():
 @pytest.fixture(scope="module")
 def house(tmp_path_factory):
     """The Oxford house corners as a correspondences file and as a 2-D tracks file, and the
-    rig `mvcalib calibrate` makes from them, as OpenCV YAML."""
+    rig `mvcalib calibrate` makes from them, as JSON (OpenCV's YAML cannot hold the DLT's
+    skew)."""
     folder = tmp_path_factory.mktemp("house")
     world, pixels, P = load_oxford_house()
     mask = np.all(np.isfinite(pixels), -1)
     names = [f"house.{v:03d}" for v in range(10)]
     corr = mc.io.save_correspondences(folder / "house.csv", world, pixels, mask, cameras=names)
     tracks = mc.io.save_correspondences(folder / "tracks.csv", None, pixels, mask, cameras=names)
-    rig = folder / "rig.yml"
-    result = run("calibrate", corr, "--format", "opencv", "--image-size", 768, 576, "--out", rig)
+    rig = folder / "rig.json"
+    result = run("calibrate", corr, "--image-size", 768, 576, "--out", rig)
     return dict(world=world, pixels=pixels, mask=mask, P=P, names=names, csv=corr,
                 tracks=tracks, rig=rig, result=result)  # fmt: skip
 
@@ -112,18 +114,16 @@ def _table(stdout: str) -> dict:
     return {r[0]: tuple(map(float, r[1:])) for r in rows}
 
 
-def _opencv_rig(path) -> list:
-    """(name, K, R, T, dist) per camera, read by OpenCV itself."""
-    cv2 = pytest.importorskip("cv2")
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    names = [storage.getNode("cameras").at(i).string() for i in range(10)]
-    keys = ("camera_matrix", "R", "T", "distortion_coefficients")
-    return [(n, *(storage.getNode(n).getNode(k).mat() for k in keys)) for n in names]
+def _rig_matrices(path) -> list:
+    """(name, K, R, T (3, 1), dist) per camera of a JSON rig, as plain arrays."""
+    cameras, names = mc.io.load_json(path)
+    fields = (np.asarray(cameras.K), np.asarray(cameras.R), np.asarray(cameras.t)[..., None],
+              np.asarray(cameras.dist))  # fmt: skip
+    return list(zip(names, *fields))
 
 
 def _residuals(K, R, T, dist, world, pixels):
-    """Reprojected - observed, by NumPy (cv2.projectPoints would drop the skew, which the
-    DLT's cameras have: up to 26 px here)."""
+    """Reprojected - observed, by NumPy (the DLT's cameras have skew: up to 26 px here)."""
     assert not np.any(dist)
     x = (world @ R.T + T[:, 0]) @ K.T
     return x[:, :2] / x[:, 2:] - pixels
@@ -138,10 +138,9 @@ def test_calibrate_fits_each_view_as_well_as_the_published_cameras(house):
     assert f"mirrored: cameras {', '.join(house['names'])} see a mirror image" in result.stdout
     table = _table(result.stdout)
     assert list(table) == house["names"]
-    assert "image_width: 768" in house["rig"].read_text()
     world, pixels, mask = house["world"], house["pixels"], house["mask"]
-    for i, (name, K, R, T, dist) in enumerate(_opencv_rig(house["rig"])):
-        assert name == house["names"][i].replace(".", "_")  # FileStorage keys are identifiers
+    for i, (name, K, R, T, dist) in enumerate(_rig_matrices(house["rig"])):
+        assert name == house["names"][i]
         r = _residuals(K, R, T, dist, world, pixels[i])[mask[i]]
         ours = np.sqrt(np.mean(np.sum(r**2, -1)))
         x = np.c_[world, np.ones(len(world))] @ house["P"][i].T
@@ -163,7 +162,7 @@ def test_report_prints_table_one_and_draws_the_figure(house, tmp_path):
     table = _table(result.stdout)
     world, pixels, mask = house["world"], house["pixels"], house["mask"]
     lengths = []
-    for i, (name, K, R, T, dist) in enumerate(_opencv_rig(house["rig"])):
+    for i, (name, K, R, T, dist) in enumerate(_rig_matrices(house["rig"])):
         r = _residuals(K, R, T, dist, world, pixels[i])[mask[i]]
         expected = (*r.mean(0), np.sqrt(np.mean(np.sum(r**2, -1))))
         np.testing.assert_allclose(table[name][:3], expected, atol=1e-4)  # the rig's names
@@ -338,8 +337,10 @@ def files(tmp_path, monkeypatch, cache_off):
         (["calibrate", "corr.csv", "--out", "r", "--format", "colmap"], 2, "needs --image-size"),
         (["calibrate", "corr.csv", "--out", "r", "--format", "colmap", "--image-size", "9", "9"],
          2, "needs --refine or --distortion"),
+        (["calibrate", "corr.csv", "--out", "r.yml"], 2,
+         "--format opencv needs --refine or --distortion (OpenCV's cameras have no skew"),
         (["calibrate", "corr.csv", "--out", "r.json", "--distortion", "k9"], 2, "'k9' is not"),
-        (["calibrate", "corr.csv", "--out", "r.yml", "--image-size", "100", "100"], 2,
+        (["calibrate", "corr.csv", "--out", "r.json", "--image-size", "100", "100"], 2,
          "visible pixels lie outside the image of `image_size` (100, 100)"),
         (["calibrate", "corr.csv", "--out", "r.json", "--format", "ply"], 2, "invalid choice"),
         (["calibrate", "corr.csv", "--out", "r.txt"], 2,
@@ -446,6 +447,28 @@ def test_convert_writes_a_rig_in_every_format_and_reads_it_back(files, capsys):
     assert exit.value.code == 2 and "a .json or .yml/.yaml file" in capsys.readouterr().err
 
 
+def test_convert_keeps_a_json_rigs_statuses_rms_and_meta(files, capsys):
+    """`convert` set every finite camera OK and dropped the RMS and meta (a POOR_FIT camera went
+    into the YAML as a good one): JSON to JSON keeps them, YAML and COLMAP leave out the
+    cameras not OK and name them."""
+    rig, _ = mc.io.load_json("rig.json")
+    three = jax.tree_util.tree_map(lambda a: np.concatenate([a, a[:1]]), rig)
+    mc.io.save_json("flagged.json", three, names=["a", "b", "c"], rms=[0.3, 41.0, 0.2],
+                    status=[mc.Status.OK, mc.Status.POOR_FIT, mc.Status.DEGENERATE],
+                    meta={"target": "box"})  # fmt: skip
+    assert cli.main(["convert", "flagged.json", "--out", "back.json", "--quiet"]) == 0
+    _, names, record = mc.io.load_json("back.json", record=True)
+    assert names == ["a", "b", "c"] and record["status"].tolist() == [0, 6, 2]
+    assert record["rms"].tolist() == [0.3, 41.0, 0.2]
+    assert record["meta"] == {"target": "box", "converted_from": "flagged.json"}
+    capsys.readouterr()
+    assert cli.main(["convert", "flagged.json", "--out", "ok.yml", "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert "1 camera of flagged.json written" in out.out
+    assert "left out, not calibrated: b (POOR_FIT), c (DEGENERATE)" in out.err
+    assert mc.io.load_opencv("ok.yml")[1] == ["a"]
+
+
 def test_files_naming_cameras_as_opencv_yaml_spells_them_match_a_json_rig(files, capsys):
     """`cal/cam1.tif` is `cal_cam1_tif` in OpenCV's YAML; a file naming the cameras so was
     refused against the JSON rig of the same calibration (the other way round worked)."""
@@ -509,7 +532,7 @@ def test_triangulate_points_out_ok_points_that_fit_badly(files, capsys):
 
 def test_calibrate_writes_the_format_its_out_file_names(files, capsys):
     """Without --format, `calibrate` writes what --out's suffix says: .yml is OpenCV's YAML."""
-    assert cli.main(["calibrate", "corr.csv", "--out", "r.yml", "--quiet"]) == 0
+    assert cli.main(["calibrate", "corr.csv", "--refine", "--out", "r.yml", "--quiet"]) == 0
     assert "(opencv)" in capsys.readouterr().out
     cameras, names = mc.io.load_opencv("r.yml")
     assert names == ["a", "b"] and cameras.batch_shape == (2,)

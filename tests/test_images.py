@@ -257,11 +257,14 @@ def test_cli_calibrate_images_writes_the_rig_and_flags_bad_files(tmp_path):
     # OpenCV's YAML by --out's suffix (it wrote JSON into rig.yml), and the labelled dots, which
     # `report` checks the rig against
     yml, dots = tmp_path / "rig.yml", tmp_path / "dots.csv"
-    result = _cli("calibrate-images", *paths, "--out", yml, "--dots", dots, "--quiet")
+    result = _cli("calibrate-images", *paths, "--refine", "--out", yml, "--dots", dots, "--quiet")
     assert result.returncode == 0, result.stderr
     assert "2 cameras written to" in result.stdout and "(opencv)" in result.stdout
     from_yaml, _ = mc.io.load_opencv(yml)
-    np.testing.assert_allclose(np.asarray(from_yaml.K), np.asarray(cameras.K), rtol=1e-12)
+    refined = mc.calibrate_images(paths, TARGET, refine=True).cameras
+    np.testing.assert_allclose(np.asarray(from_yaml.K), np.asarray(refined.K), rtol=1e-12)
+    without = _cli("calibrate-images", *paths, "--out", yml, "--quiet")  # (the DLT's skew)
+    assert without.returncode == 2 and "--format opencv needs --refine" in without.stderr
     data = mc.io.load_correspondences(dots)
     assert data.pixels.shape == (2, len(TARGET.points), 2)
     np.testing.assert_array_equal(data.mask, api.mask)
@@ -343,6 +346,57 @@ def test_opencv_yaml_round_trip_is_exact_and_opencv_reads_the_same_numbers(tmp_p
     bad.write_text("%YAML:1.0\n---\ncamera_matrix: 3\n")
     with pytest.raises(ValueError, match="lacks"):
         mc.io.load_opencv(bad)
+
+
+def test_opencv_yaml_as_filestorage_writes_it_and_what_opencv_cannot_hold(tmp_path):
+    """Files `cv2.FileStorage` writes itself: `cameras` as a block sequence and `R` as a
+    rotation vector were refused ("lacks camera_matrix"); they read now and project as
+    `cv2.projectPoints` does. XML and JSON are named as such. A pinhole with skew is refused
+    (`cv2.projectPoints` ignores K[0,1]: the file put points up to 10 px off on Oxford's house),
+    as is a camera named `cameras`, the key that lists them."""
+    cv2 = pytest.importorskip("cv2")
+    rig = mc.synthetic.random_rig(jax.random.key(14), 2).cameras
+    dist = np.array([[-0.21, 0.093, 1.2e-3, -7e-4, 0.011]] * 2)
+    rig = mc.Camera.from_matrices(rig.K, rig.R, rig.t, dist)
+    path = tmp_path / "cv.yml"
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    storage.startWriteStruct("cameras", cv2.FileNode_SEQ)
+    for name in ("left", "right"):
+        storage.write("", name)
+    storage.endWriteStruct()
+    for i, name in enumerate(("left", "right")):
+        storage.startWriteStruct(name, cv2.FileNode_MAP)
+        rvec = cv2.Rodrigues(np.asarray(rig.R[i]))[0]
+        for key, value in (("camera_matrix", np.asarray(rig.K[i])), ("R", rvec),
+                           ("T", np.asarray(rig.t[i])[:, None]),
+                           ("distortion_coefficients", np.asarray(rig.dist[i])[None])):  # fmt: skip
+            storage.write(key, value)
+        storage.endWriteStruct()
+    storage.release()
+    assert "   - left" in path.read_text()
+    back, names = mc.io.load_opencv(path)
+    assert names == ["left", "right"]
+    world = np.asarray(mc.targets.box_corner().points)
+    for i in range(2):
+        rvec = cv2.Rodrigues(np.asarray(rig.R[i]))[0]
+        theirs = cv2.projectPoints(world, rvec, np.asarray(rig.t[i]), np.asarray(rig.K[i]),
+                                   np.asarray(rig.dist[i]))[0][:, 0]  # fmt: skip
+        np.testing.assert_allclose(np.asarray(back[i].project(world)), theirs, atol=1e-9)
+    for kind in ("xml", "json"):
+        other = tmp_path / f"cv.{kind}"
+        storage = cv2.FileStorage(str(other), cv2.FILE_STORAGE_WRITE)
+        storage.write("camera_matrix", np.eye(3))
+        storage.release()
+        with pytest.raises(ValueError, match=f"a FileStorage {kind.upper()} file"):
+            mc.io.load_opencv(other)
+    skewed = eqx.tree_at(lambda c: c.skew, rig, rig.skew + 1.5)
+    with pytest.raises(ValueError, match="OpenCV's pinhole model has no skew"):
+        mc.io.save_opencv(tmp_path / "s.yml", skewed)
+    with pytest.raises(ValueError, match="may not be named 'cameras'"):
+        mc.io.save_opencv(tmp_path / "n.yml", rig, names=["cameras", "b"])
+    assert not (tmp_path / "s.yml").exists() and not (tmp_path / "n.yml").exists()
+    one = mc.io.save_opencv(tmp_path / "one.yml", rig[0], names=["left"])  # (its name was lost)
+    assert mc.io.load_opencv(one)[1] == ["left"]
 
 
 def test_colmap_export_round_trips_and_refuses_skew(tmp_path):

@@ -172,6 +172,28 @@ def test_malformed_csv_gives_one_line_naming_file_and_line(tmp_path, text, messa
     assert "\n" not in str(info.value)
 
 
+def test_camera_names_a_csv_would_read_as_comments_are_refused(tmp_path):
+    """A camera named `#1` was written, then its rows skipped as comments: its observations
+    were gone, without a word."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), 2)
+    with pytest.raises(ValueError, match="camera names must not start with '#'"):
+        mc.io.save_correspondences(tmp_path / "p.csv", rig.world, rig.pixels, rig.mask,
+                                   cameras=["#1", "#2"])  # fmt: skip
+    assert not (tmp_path / "p.csv").exists()
+
+
+def test_json_rig_gives_back_what_was_stored_for_the_record(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras
+    path = mc.io.save_json(tmp_path / "r.json", rig, status=[0, 6, 0], rms=[0.25, 9.5, np.nan],
+                           meta={"target": "box"})  # fmt: skip
+    cameras, names, record = mc.io.load_json(path, record=True)
+    np.testing.assert_array_equal(np.asarray(cameras.K), np.asarray(rig.K))
+    assert record["status"].tolist() == [0, 6, 0] and record["meta"] == {"target": "box"}
+    np.testing.assert_array_equal(record["rms"], [0.25, 9.5, np.nan])
+    _, _, bare = mc.io.load_json(mc.io.save_json(tmp_path / "s.json", rig), record=True)
+    assert bare == {"status": None, "rms": None, "meta": {}}
+
+
 def test_malformed_json_and_wrong_suffix_are_refused(tmp_path):
     good = mc.io.save_correspondences(tmp_path / "c.json", np.eye(3), np.ones((1, 3, 2)))
     document = json.loads(good.read_text())

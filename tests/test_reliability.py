@@ -494,6 +494,25 @@ def test_aniposelib_fisheye_cameras_are_read_as_fisheyes_not_pinholes(tmp_path):
     assert mc.io.load_aniposelib(path)[0].lens == "fisheye"
 
 
+def test_aniposelib_skew_entry_is_read_as_aniposelib_projects_it(tmp_path):
+    """aniposelib projects with `cv2.projectPoints`, which ignores K[0,1]: a file with a skew
+    entry there projected 0.76 px apart in mvcalib; it is read without, and a warning says so."""
+    cv2 = pytest.importorskip("cv2")
+    path = tmp_path / "calibration.toml"
+    path.write_text(
+        "[cam_0]\nname = 'A'\nmatrix = [[600.0, 2.0, 640.0], [0.0, 610.0, 360.0], [0, 0, 1]]\n"
+        "distortions = [0.1, -0.02, 0.003, -0.001, 0.0]\nrotation = [0.1, -0.2, 0.05]\n"
+        "translation = [10.0, -5.0, 900.0]\nsize = [1280, 720]\n"
+    )
+    with pytest.warns(UserWarning, match="K.0,1. .skew. is not zero for A"):
+        cameras, _ = mc.io.load_aniposelib(path)
+    world = np.asarray(mc.targets.box_corner().points)
+    K = np.array([[600.0, 2.0, 640.0], [0.0, 610.0, 360.0], [0, 0, 1]])
+    theirs = cv2.projectPoints(world, np.array([0.1, -0.2, 0.05]), np.array([10.0, -5.0, 900.0]),
+                               K, np.array([0.1, -0.02, 0.003, -0.001, 0.0]))[0][:, 0]  # fmt: skip
+    np.testing.assert_allclose(np.asarray(cameras[0].project(world)), theirs, atol=1e-9)
+
+
 @pytest.mark.parametrize("line", ["1", "1 PINHOLE 10 10 abc 1 2 3", "1 PINHOLE 10 10 5"])
 def test_malformed_colmap_cameras_are_refused_with_the_file_name(tmp_path, line):
     (tmp_path / "cameras.txt").write_text(line + "\n")
