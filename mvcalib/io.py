@@ -637,56 +637,74 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
     return folder
 
 
+# COLMAP's camera models that mvcalib's lenses hold: the lens, and the parameters in COLMAP's
+# order, named as mvcalib's (COLMAP's fisheye models are Kannala-Brandt's, cv2.fisheye's, with
+# as many terms as they name; `SIMPLE_FISHEYE` and `FISHEYE` are equidistant, without).
+_COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": ("pinhole", "f cx cy"),
+    "PINHOLE": ("pinhole", "fx fy cx cy"),
+    "SIMPLE_RADIAL": ("pinhole", "f cx cy k1"),
+    "RADIAL": ("pinhole", "f cx cy k1 k2"),
+    "OPENCV": ("pinhole", "fx fy cx cy k1 k2 p1 p2"),
+    "FULL_OPENCV": ("pinhole", "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6"),
+    "SIMPLE_FISHEYE": ("fisheye", "f cx cy"),
+    "FISHEYE": ("fisheye", "fx fy cx cy"),
+    "SIMPLE_RADIAL_FISHEYE": ("fisheye", "f cx cy k1"),
+    "RADIAL_FISHEYE": ("fisheye", "f cx cy k1 k2"),
+    "OPENCV_FISHEYE": ("fisheye", "fx fy cx cy k1 k2 k3 k4"),
+}
+
+
 def load_colmap(folder) -> tuple[Camera, list[str]]:
-    """Read a COLMAP text model's cameras and images (models `PINHOLE`, `OPENCV`, `FULL_OPENCV`,
-    `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`; `OPENCV_FISHEYE` as a fisheye rig): one mvcalib
-    camera per image, `(cameras, image names)`, in the order of `images.txt`."""
+    """Read a COLMAP text model's cameras and images: one mvcalib camera per image, `(cameras,
+    image names)`, in the order of `images.txt`. The camera models read are those a lens of
+    mvcalib's holds: `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`, `OPENCV`,
+    `FULL_OPENCV` (k4-k6 zero) as pinholes; `SIMPLE_FISHEYE`, `FISHEYE`,
+    `SIMPLE_RADIAL_FISHEYE`, `RADIAL_FISHEYE`, `OPENCV_FISHEYE` as fisheyes (a rig is one lens).
+    A binary model (`cameras.bin`) is not read: COLMAP's `model_converter --output_type TXT`
+    writes the text one."""
     folder = pathlib.Path(folder)
     try:
         cam_lines = _data_lines(folder / "cameras.txt")
         img_lines = _data_lines(folder / "images.txt")
     except OSError as error:
-        raise ValueError(f"{folder}: not a COLMAP text model ({error})") from None
+        binary = (folder / "cameras.bin").exists()
+        hint = "; a binary model: `colmap model_converter --output_type TXT` writes the text one"
+        raise ValueError(
+            f"{folder}: not a COLMAP text model ({error}){hint if binary else ''}"
+        ) from None
     intrinsics = {}
-    n_params = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
-    n_params.update(FULL_OPENCV=12, OPENCV_FISHEYE=8)
     for line in cam_lines:
         f = line.split()
         try:
             model, p = f[1], [float(v) for v in f[4:]]
-            n = n_params.get(model, len(p))
-            if len(f) < 4 or len(p) != n:
-                raise ValueError(f"{model} has {n} parameters, not {len(p)}")
+            if model not in _COLMAP_MODELS:
+                raise KeyError(model)
+            lens, names = _COLMAP_MODELS[model]
+            if len(f) < 4 or len(p) != len(names.split()):
+                raise ValueError(f"{model} has {len(names.split())} parameters, not {len(p)}")
+        except KeyError:
+            raise ValueError(
+                f"{folder}: camera model {model} is not supported (mvcalib reads "
+                f"{', '.join(_COLMAP_MODELS)})."
+            ) from None
         except (IndexError, ValueError) as error:
             raise ValueError(
                 f"{folder / 'cameras.txt'}: malformed line {line!r} ({error})"
             ) from None
-        dist = [0.0] * 5
-        if model == "OPENCV_FISHEYE":
-            fx, fy, cx, cy = p[:4]
-            dist = p[4:8]
-        elif model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
-            fx, fy, cx, cy = p[:4]
-            if model != "PINHOLE":
-                dist[:4] = p[4:8]
-            if model == "FULL_OPENCV":
-                if any(p[9:12]):
-                    raise ValueError(f"{folder}: camera {f[0]} uses k4-k6, which mvcalib lacks.")
-                dist[4] = p[8]
-        elif model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-            fx = fy = p[0]
-            cx, cy = p[1:3]
-            dist[: len(p) - 3] = p[3:]
-        else:
-            raise ValueError(f"{folder}: camera model {model} is not supported.")
-        intrinsics[f[0]] = (fx, fy, cx - 0.5, cy - 0.5, dist, model)
+        value = dict(zip(names.split(), p))
+        if any(value.pop(k, 0.0) for k in ("k4", "k5", "k6") if lens == "pinhole"):
+            raise ValueError(f"{folder}: camera {f[0]} uses k4-k6, which mvcalib lacks.")
+        fx, fy = value.get("fx", value.get("f")), value.get("fy", value.get("f"))
+        dist = [value.get(k, 0.0) for k in LENSES[lens]]
+        intrinsics[f[0]] = (fx, fy, value["cx"] - 0.5, value["cy"] - 0.5, dist, lens)
     fields, names, lenses = [], [], []
     for line in img_lines[::2]:  # every image has a second line of 2-D points
         f = line.split()
         if len(f) < 10 or f[8] not in intrinsics:
             raise ValueError(f"{folder}: malformed images.txt line: {line!r}")
-        fx, fy, cx, cy, dist, model = intrinsics[f[8]]
-        lenses.append("fisheye" if model == "OPENCV_FISHEYE" else "pinhole")
+        fx, fy, cx, cy, dist, lens = intrinsics[f[8]]
+        lenses.append(lens)
         try:
             q, t = [float(v) for v in f[1:5]], [float(v) for v in f[5:8]]
         except ValueError as error:

@@ -292,6 +292,30 @@ def test_rig_files_round_trip_exactly_with_their_lens(tmp_path):
     assert (tmp_path / "colmap" / "cameras.txt").read_text().count("OPENCV_FISHEYE") == 4
 
 
+@pytest.mark.parametrize(
+    ("model", "params", "K", "D"),
+    [("SIMPLE_FISHEYE", [300.0, 640.5, 480.5], (300, 300, 640, 480), [0, 0, 0, 0]),
+     ("FISHEYE", [300.0, 310.0, 640.5, 480.5], (300, 310, 640, 480), [0, 0, 0, 0]),
+     ("SIMPLE_RADIAL_FISHEYE", [300.0, 640.5, 480.5, 0.05], (300, 300, 640, 480),
+      [0.05, 0, 0, 0]),
+     ("RADIAL_FISHEYE", [300.0, 640.5, 480.5, 0.05, -0.01], (300, 300, 640, 480),
+      [0.05, -0.01, 0, 0])],
+)  # fmt: skip
+def test_colmap_fisheye_models_read_as_cv2_fisheye_projects_them(tmp_path, model, params, K, D):
+    """COLMAP's simpler fisheye models (Kannala-Brandt with fewer terms, or equidistant) were
+    refused though a fisheye of mvcalib's holds them exactly."""
+    (tmp_path / "cameras.txt").write_text(f"1 {model} 1280 960 {' '.join(map(str, params))}\n")
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0.1 -0.2 1.5 1 a.png\n\n")
+    cameras, names = mc.io.load_colmap(tmp_path)
+    assert names == ["a.png"] and cameras.lens == "fisheye"
+    fx, fy, cx, cy = K
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    world = np.random.default_rng(1).uniform(-1.0, 1.0, (20, 3))
+    theirs = cv2.fisheye.projectPoints(world[:, None], np.zeros(3), np.array([0.1, -0.2, 1.5]),
+                                       K, np.array(D, float))[0][:, 0]  # fmt: skip
+    np.testing.assert_allclose(cameras[0].project(world), theirs, rtol=0, atol=1e-9)
+
+
 def test_a_skewed_fisheye_in_opencv_yaml_projects_as_cv2_fisheye_with_its_alpha(tmp_path):
     """`cv2.fisheye` ignores K's skew entry and takes `alpha` (skew / fx) as an argument: the
     file holds it (without it, the file's numbers put points 1.4 px off)."""
