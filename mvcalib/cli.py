@@ -69,7 +69,9 @@ EXAMPLES = {
   mvcalib convert rig.json --out rig.yml --image-size 1280 1024
                                   a rig as OpenCV's YAML (cv2.FileStorage)
   mvcalib convert calibration.toml --format colmap --image-size 1280 1024 --out sparse/
-                                  aniposelib's rig as a COLMAP text model""",
+                                  aniposelib's rig as a COLMAP text model
+  mvcalib convert rig.json --out calibration.toml --image-size 1280 1024
+                                  a rig for anipose (aniposelib's CameraGroup.load)""",
     "calibrate-images": """\
   mvcalib calibrate-images cam*.png --out rig.json
                                   one camera per photo of the box-corner target
@@ -201,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
         "a lens without distortion: focal lengths 0.42 %% off with none, 0.73 %% with k1,k2,p1,p2, "
         "median of 200 cameras)",
     )
-    calibrate.add_argument("--image-size", **size, help="written to OpenCV and COLMAP files")
+    calibrate.add_argument(
+        "--image-size", **size, help="written to OpenCV's, COLMAP's and aniposelib's files"
+    )
 
     rig = command(
         "calibrate-rig",
@@ -323,7 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     convert.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
     _rig_output(convert, "every camera", "--image-size")
-    convert.add_argument("--image-size", **size, help="written to OpenCV's YAML; COLMAP needs it")
+    convert.add_argument(
+        "--image-size", **size, help="written to OpenCV's YAML; COLMAP and aniposelib need it"
+    )
 
     triangulate = command(
         "triangulate",
@@ -541,9 +547,11 @@ def _check_usage(parser, args) -> None:
         parser.error(f"--out must be a .csv file; got {args.out}")
     if args.command in ("calibrate", "calibrate-rig", "calibrate-images", "convert"):
         _check_format(parser, args, suffix)
-        if args.format == "colmap" and getattr(args, "image_size", 0) is None:
-            parser.error("--format colmap needs --image-size WIDTH HEIGHT")
-    no_skew = {"colmap": "COLMAP's", "opencv": "OpenCV's"}.get(getattr(args, "format", None))
+        if args.format in _SIZED and getattr(args, "image_size", 0) is None:
+            parser.error(f"--format {args.format} needs --image-size WIDTH HEIGHT")
+    no_skew = {"colmap": "COLMAP's", "opencv": "OpenCV's", "aniposelib": "aniposelib's"}.get(
+        getattr(args, "format", None)
+    )
     if args.command == "calibrate-images" and no_skew and not args.refine:
         parser.error(
             f"--format {args.format} needs --refine ({no_skew} cameras have no skew; the DLT's "
@@ -584,7 +592,8 @@ def _check_usage(parser, args) -> None:
         parser.error("--focal must be positive (a focal-length guess in pixels)")
 
 
-_FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv"}  # --out's, of a rig
+_FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv", ".toml": "aniposelib"}  # --out's
+_SIZED = ("colmap", "aniposelib")  # the formats whose cameras need an image size
 
 
 def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
@@ -592,9 +601,10 @@ def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
     parser.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
     parser.add_argument(
         "--format",
-        choices=("json", "opencv", "colmap"),
-        help=f"json ({json_holds}), opencv (FileStorage YAML) or colmap (text model in the "
-        f"folder --out; needs {colmap_needs}); default from --out: .json, .yml or .yaml",
+        choices=("json", "opencv", "colmap", "aniposelib"),
+        help=f"json ({json_holds}), opencv (FileStorage YAML), colmap (text model in the "
+        f"folder --out; needs {colmap_needs}) or aniposelib (calibration.toml; needs it too); "
+        "default from --out: .json, .yml or .yaml, .toml",
     )
 
 
@@ -620,7 +630,8 @@ def _check_format(parser, args, suffix: str) -> None:
     if args.format is None:
         if suffix not in _FORMATS:
             parser.error(
-                f"--out {args.out}: a .json or .yml/.yaml file, or a folder with --format colmap"
+                f"--out {args.out}: a .json, .yml/.yaml or .toml file, or a folder with "
+                "--format colmap"
             )
         args.format = _FORMATS[suffix]
     elif args.format != "colmap" and _FORMATS.get(suffix) != args.format:
@@ -903,9 +914,9 @@ def _calibrate(args) -> int:
 
 def _write_rig(args, cameras, names, status, rms, meta) -> int:
     """The rig to `args.out` in `args.format`: JSON holds every camera with its status, RMS and
-    `meta`; OpenCV's YAML and COLMAP's model the calibrated ones. Returns how many were written.
-    Where no camera was calibrated nothing is written (a rig file there, perhaps a good one from
-    an earlier run, was replaced by one of NaN cameras)."""
+    `meta`; OpenCV's YAML, COLMAP's model and aniposelib's TOML the calibrated ones. Returns how
+    many were written. Where no camera was calibrated nothing is written (a rig file there,
+    perhaps a good one from an earlier run, was replaced by one of NaN cameras)."""
     import numpy as np
 
     from . import io
@@ -923,6 +934,8 @@ def _write_rig(args, cameras, names, status, rms, meta) -> int:
         io.save_opencv(
             out, cameras, names=_unique(map(_identifier, names)), image_size=args.image_size
         )
+    elif args.format == "aniposelib":
+        io.save_aniposelib(out, cameras, args.image_size, names=names)
     else:
         io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
     return len(keep)
@@ -1453,8 +1466,8 @@ def _calibrate_images(args) -> int:
     _note_loose_principal_points(result)
     sizes = {d.image_shape[::-1] for d in result.detections if d is not None}
     args.image_size = sizes.pop() if len(sizes) == 1 else None  # (width, height)
-    if args.format == "colmap" and args.image_size is None:
-        raise ValueError("--format colmap takes photos of one size; these differ")
+    if args.format in _SIZED and args.image_size is None:
+        raise ValueError(f"--format {args.format} takes photos of one size; these differ")
     meta = {
         "target": target.name,
         "messages": result.messages,

@@ -28,7 +28,7 @@ from ._camera import LENSES, Camera
 
 __all__ = [
     "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
-    "write_atomic", "load_aniposelib", "Correspondences", "save_correspondences",
+    "write_atomic", "save_aniposelib", "load_aniposelib", "Correspondences", "save_correspondences",
     "load_correspondences", "Observations", "save_observations", "load_observations",
     "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks", "load_clicks",
     "load_openptv_calibration",
@@ -302,6 +302,85 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     return Camera.from_matrices(K, rodrigues(jnp.asarray(rvec)), t, dist, lens=lens), names
 
 
+def save_aniposelib(path, cameras: Camera, image_size, *, names=None) -> pathlib.Path:
+    """Save a rig as an aniposelib / anipose calibration file (TOML), atomically: what
+    `aniposelib.cameras.CameraGroup.load` reads, and `load_aniposelib`.
+
+    **Arguments:**
+
+    - `path`: the file to write (replaced whole, or not at all).
+    - `cameras`: the rig, a `Camera` with one camera axis.
+    - `image_size`: `(width, height)` in pixels, for every camera or `(C, 2)`: aniposelib's
+      cameras need theirs (`size`).
+    - `names`: a name per camera (default `0`, `1`, ...), aniposelib's `name`.
+
+    Each camera is a table of `name`, `size`, `matrix` (K), `distortions` (k1 k2 p1 p2 k3; a
+    fisheye's k1 k2 k3 k4, with `fisheye = true`), `rotation` (a Rodrigues vector, world to
+    camera) and `translation`, and an empty `[metadata]` table follows. The tables are named
+    `cam_00`, `cam_01`, ... with as many digits as the last needs: aniposelib orders them as
+    strings (`cam_10` before `cam_2`), which permuted the cameras of rigs of more than ten; so
+    padded, its order is theirs. A camera with skew is refused (ValueError): aniposelib projects
+    with `cv2.projectPoints`, which ignores K[0,1]. Numbers are written with Python's shortest
+    exact representation (rotations as vectors: to ~1e-16).
+
+    **Example:**
+
+    ```python
+    >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "calibration.toml"
+    >>> _ = mc.io.save_aniposelib(path, rig, (1000, 1100), names=["A", "B", "C"])
+    >>> back, names = mc.io.load_aniposelib(path)
+    >>> world = mc.targets.box_corner().points
+    >>> names, bool(np.allclose(back.project(world), rig.project(world), rtol=0, atol=1e-9))
+    (['A', 'B', 'C'], True)
+
+    ```
+    """
+    _check_cameras(cameras, "save_aniposelib")
+    rig = jax.tree_util.tree_map(np.asarray, cameras)
+    if len(rig.batch_shape) != 1:
+        raise ValueError(f"save a rig with one camera axis; got the shape {rig.batch_shape}.")
+    n = rig.batch_shape[0]
+    if np.any(rig.skew != 0):
+        raise ValueError(
+            "aniposelib's cameras have no skew (cv2.projectPoints ignores K[0,1]); refine "
+            "with skew=False (refine's default) first."
+        )
+    if not np.all(np.isfinite(rig.K)):
+        raise ValueError("the rig has cameras that are not calibrated (NaN); leave them out.")
+    size = np.broadcast_to(np.asarray(image_size), (n, 2)) if np.ndim(image_size) else None
+    if size is None or not np.all(size > 0) or not np.all(size == np.round(size)):
+        raise ValueError(f"`image_size` must be (width, height) or ({n}, 2) of positive ints.")
+    names = [str(i) for i in range(n)] if names is None else [str(s) for s in names]
+    if len(names) != n:
+        raise ValueError(f"{len(names)} names for {n} cameras.")
+    rvec = [_rotation_vector(r) for r in rig.R]
+
+    def toml(x):  # a TOML value: arrays of floats, ints or a string
+        if isinstance(x, str):
+            return json.dumps(x, ensure_ascii=False)  # (JSON's escapes are TOML's)
+        if np.ndim(x):
+            return "[ " + ", ".join(toml(v) for v in x) + ",]"
+        return str(int(x)) if isinstance(x, (int, np.integer)) else repr(float(x))
+
+    digits = len(str(n - 1))
+    lines = []
+    for i in range(n):
+        lines += [
+            f"[cam_{i:0{digits}d}]",
+            f"name = {toml(names[i])}",
+            f"size = {toml([int(v) for v in size[i]])}",
+            f"matrix = {toml(rig.K[i])}",
+            f"distortions = {toml(rig.dist[i])}",
+            f"rotation = {toml(rvec[i])}",
+            f"translation = {toml(rig.t[i])}",
+            *(["fisheye = true"] if rig.lens == "fisheye" else []),
+            "",
+        ]
+    return write_atomic(path, "\n".join([*lines, "[metadata]", ""]))
+
+
 # ---------------------------------------------------------------------------- OpenCV YAML
 def _opencv_matrix(name: str, a, indent: str) -> list[str]:
     a = np.atleast_2d(np.asarray(a, dtype=float))
@@ -565,6 +644,14 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
         q = [(m[l, j] - m[j, l]) / (2 * r), *v]
     q = np.asarray(q)
     return q if q[0] >= 0 else -q
+
+
+def _rotation_vector(R: np.ndarray) -> np.ndarray:
+    """The rotation vector (Rodrigues', OpenCV's `rvec`) of a rotation matrix, by its
+    quaternion: accurate at every angle, 180 degrees too."""
+    w, v = _quaternion(R)[0], _quaternion(R)[1:]
+    s = np.linalg.norm(v)
+    return 2.0 * v / w if s == 0.0 else 2.0 * math.atan2(s, w) * v / s
 
 
 def _rotation(q) -> np.ndarray:

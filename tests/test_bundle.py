@@ -412,3 +412,44 @@ def test_the_preconditioner_blocks_written_out_equal_lapacks(monkeypatch, p):
     np.testing.assert_allclose(written, lapack, rtol=1e-9, atol=0)
     WtGW = np.einsum("bki,bkl,blj->bij", written, G, written)
     np.testing.assert_allclose(WtGW[[0, 4, 5]], np.broadcast_to(np.eye(p), (3, p, p)), atol=1e-9)
+
+
+@pytest.mark.parametrize("lens", ["pinhole", "fisheye"])
+def test_aniposelib_file_projects_as_aniposelib_does_in_its_own_camera_order(tmp_path, lens):
+    """`save_aniposelib` writes what `CameraGroup.load` reads: aniposelib projects with
+    `cv2.projectPoints` (`cv2.fisheye`'s with `fisheye = true`) from the file's numbers, and
+    orders the tables as strings (`cam_10` before `cam_2`, which permuted rigs of more than ten
+    cameras): the tables are `cam_00`, `cam_01`, ..., in that order either way."""
+    import tomllib
+
+    cv2 = pytest.importorskip("cv2")
+    rig = mc.synthetic.random_rig(jax.random.key(32), 12).cameras
+    dist = [-0.2, 0.05, 1e-3, -2e-3, 0.01] if lens == "pinhole" else [0.05, -0.01, 2e-3, -1e-4]
+    rig = mc.Camera.from_matrices(rig.K, rig.R, rig.t, np.tile(dist, (12, 1)), lens=lens)
+    names = [f"Kamera {i}" for i in range(12)]
+    path = mc.io.save_aniposelib(tmp_path / "calibration.toml", rig, (1000, 1100), names=names)
+    document = tomllib.loads(path.read_text())
+    cameras = [document[key] for key in sorted(document) if key != "metadata"]  # aniposelib's
+    assert [c["name"] for c in cameras] == names and "metadata" in document
+    world = np.random.default_rng(3).uniform(0.0, 160.0, (30, 3))
+    project = cv2.fisheye.projectPoints if lens == "fisheye" else cv2.projectPoints
+    for i, c in enumerate(cameras):
+        assert c["size"] == [1000, 1100] and c.get("fisheye", False) == (lens == "fisheye")
+        K, D = np.array(c["matrix"]), np.array(c["distortions"])
+        theirs = project(world[:, None], np.array(c["rotation"]), np.array(c["translation"]), K, D)
+        np.testing.assert_allclose(rig[i].project(world), theirs[0][:, 0], rtol=0, atol=1e-9)
+    back, got = mc.io.load_aniposelib(path)
+    assert got == names and back.lens == lens
+    np.testing.assert_allclose(np.asarray(back.R), np.asarray(rig.R), rtol=0, atol=1e-15)
+
+
+def test_aniposelib_file_refuses_what_aniposelib_cannot_hold(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(33), 2).cameras
+    path = tmp_path / "calibration.toml"
+    with pytest.raises(ValueError, match="no skew"):
+        mc.io.save_aniposelib(path, eqx.tree_at(lambda c: c.skew, rig, rig.skew + 1.0), (9, 9))
+    with pytest.raises(ValueError, match="not calibrated"):
+        mc.io.save_aniposelib(path, eqx.tree_at(lambda c: c.u0, rig, rig.u0 * np.nan), (9, 9))
+    with pytest.raises(ValueError, match="image_size"):
+        mc.io.save_aniposelib(path, rig, None)
+    assert not path.exists()

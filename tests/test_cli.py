@@ -344,7 +344,7 @@ def files(tmp_path, monkeypatch, cache_off):
          "visible pixels lie outside the image of `image_size` (100, 100)"),
         (["calibrate", "corr.csv", "--out", "r.json", "--format", "ply"], 2, "invalid choice"),
         (["calibrate", "corr.csv", "--out", "r.txt"], 2,
-         "--out r.txt: a .json or .yml/.yaml file, or a folder with --format colmap"),
+         "--out r.txt: a .json, .yml/.yaml or .toml file, or a folder with --format colmap"),
         (["calibrate", "corr.csv", "--out", "r.json", "--format", "opencv"], 2,
          "--format opencv writes a .yml or .yaml file; got --out r.json"),
         (["calibrate", "tracks.csv", "--out", "r.json"], 2, "no world_x, world_y, world_z"),
@@ -444,7 +444,25 @@ def test_convert_writes_a_rig_in_every_format_and_reads_it_back(files, capsys):
         np.testing.assert_allclose(cameras.project(world), rig.project(world), rtol=0, atol=1e-9)
     with pytest.raises(SystemExit) as exit:
         cli.main(["convert", "rig.json", "--out", "r.txt"])
-    assert exit.value.code == 2 and "a .json or .yml/.yaml file" in capsys.readouterr().err
+    assert exit.value.code == 2 and "a .json, .yml/.yaml or .toml file" in capsys.readouterr().err
+
+
+def test_convert_writes_aniposelibs_calibration_toml(files, capsys):
+    rig, names = mc.io.load_json("rig.json")
+    args = ["convert", "rig.json", "--out", "calibration.toml", "--quiet"]
+    with pytest.raises(SystemExit) as exit:
+        cli.main(args)
+    assert (
+        exit.value.code == 2 and "--format aniposelib needs --image-size" in capsys.readouterr().err
+    )
+    assert cli.main([*args, "--image-size", "1000", "1100"]) == 0
+    assert (
+        "2 cameras of rig.json written to calibration.toml (aniposelib)" in capsys.readouterr().out
+    )
+    back, got = mc.io.load_aniposelib("calibration.toml")
+    world = mc.targets.box_corner().points
+    assert got == names
+    np.testing.assert_allclose(back.project(world), rig.project(world), rtol=0, atol=1e-9)
 
 
 def test_convert_keeps_a_json_rigs_statuses_rms_and_meta(files, capsys):

@@ -347,7 +347,7 @@ RIG = ["calibrate-rig", "obs.csv", "--out", "r.json"]
         ([*RIG, "--distortion", "k9"], "'k9' is not one of"),
         (["calibrate-rig", "corr.csv", "--out", "r.json"], "corr.csv:1: "),
         (["calibrate-rig", "four.json", "--out", "r.json"], "four.json:1: "),
-        (["calibrate-rig", "obs.csv", "--out", "r.txt"], "--out r.txt: a .json or .yml/.yaml"),
+        (["calibrate-rig", "obs.csv", "--out", "r.txt"], "--out r.txt: a .json, .yml/.yaml or"),
         ([*RIG, "--format", "colmap"], "--format colmap needs --image-size"),
         ([*RIG, "--format", "opencv"], "--format opencv writes a .yml or .yaml file"),
         ([*RIG, "--origin-frame", "2"], "--origin-frame chooses the world frame with --reference"),
