@@ -52,7 +52,8 @@ class RigRefinement(eqx.Module):
     - `cameras`: the refined rig, in the global frame.
     - `transform`: the refined local-to-global placement of the target (`Y = R X + t`).
     - `world`: the 3-D points in the local frame (refined when `points="free"`).
-    - `rms_before`, `rms_after`: reprojection RMS per camera (pixels).
+    - `rms_before`, `rms_after`: reprojection RMS per camera (pixels); NaN for a camera that
+      saw none of the points (held at its seed).
     - `anchor_rms`: RMS distance (world units) between the placed anchor points and their
       measured global coordinates, after refinement (NaN without anchors).
     - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful), `ok`, `messages()`.
@@ -81,6 +82,12 @@ class RigRefinement(eqx.Module):
             message = (
                 f"{message.rstrip('.')}; cameras {unused.tolist()} took no part (their seeds "
                 "are not finite)"
+            )
+        unseen = np.flatnonzero(np.asarray(self.used) & np.isnan(np.asarray(self.rms_after)))
+        if len(unseen):
+            message = (
+                f"{message.rstrip('.')}; cameras {unseen.tolist()} saw none of the points and "
+                "are held at their seeds"
             )
         return message
 
@@ -320,8 +327,9 @@ def _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver, 
         sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
     )
     nan = jnp.asarray(jnp.nan, dtype)
-    before = jnp.where(used, masked_rms(cameras, transform.apply(world), pixels, mask), nan)
-    after = jnp.where(used, masked_rms(refined, placement.apply(new_world), pixels, mask), nan)
+    seen = used & jnp.any(mask, axis=1)  # (an RMS of no observations is none, not 0 px)
+    before = jnp.where(seen, masked_rms(cameras, transform.apply(world), pixels, mask), nan)
+    after = jnp.where(seen, masked_rms(refined, placement.apply(new_world), pixels, mask), nan)
     refined = where_cameras(used, refined, jax.tree_util.tree_map(lambda x: nan, refined))
     if anchors is None:
         anchor_rms = nan
@@ -600,13 +608,39 @@ class BundleAdjustment:
     - `cameras`: the refined rig.
     - `rounds`: one dict per round: the outlier `threshold` (px), the `points` and
       `observations` used, the reprojection RMS `before` and `after` (px, over those
-      observations), LM `iterations`, and `seconds`.
+      observations), LM `iterations`, `seconds`, and per camera (lists) the observations of
+      the sampled tracks it `saw` and those it `kept` (within the threshold, of points kept).
     - `refinement`: the last round's `RigRefinement`.
+    - `doubtful`: `(C,)` the cameras that kept less than half of what they saw in the last
+      round: their RMS counts only what they kept, and may look fine when the camera is not
+      (a start far off, its tracks wrong, a lens the model does not fit); `messages()` names
+      them.
     """
 
     cameras: Camera
     rounds: list
     refinement: RigRefinement
+
+    @property
+    def doubtful(self) -> np.ndarray:
+        last = self.rounds[-1]
+        return np.asarray(last["kept"]) < 0.5 * np.asarray(last["saw"])
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.refinement.ok) and not np.any(self.doubtful)
+
+    def messages(self) -> str:
+        message = self.refinement.messages()
+        last = self.rounds[-1]
+        for i in np.flatnonzero(self.doubtful):
+            kept, saw = last["kept"][i], last["saw"][i]
+            message = (
+                f"{message.rstrip('.')}; camera {i} kept {kept} of the {saw} observations it saw "
+                f"within {last['threshold']:g} px ({100 * kept / max(saw, 1):.0f} %): its "
+                "calibration is doubtful, whatever its RMS"
+            )
+        return message
 
 
 def bundle_adjust(
@@ -720,12 +754,16 @@ def bundle_adjust(
             "iterations": int(refinement.iterations),
             "seconds": time.perf_counter() - start,
         }
+        summary["saw"] = seen.sum(1).tolist()
+        summary["kept"] = observed[:, : len(kept)].sum(1).tolist()
         rounds.append(summary)
         if progress:
+            few = [i for i, (k, n) in enumerate(zip(summary["kept"], summary["saw"])) if k < n / 2]
             print(
                 f"bundle_adjust: threshold {threshold:g} px, {summary['points']} points, "
                 f"RMS {summary['before']:.2f} -> {summary['after']:.2f} px "
-                f"({summary['iterations']} steps, {summary['seconds']:.0f} s)",
+                f"({summary['iterations']} steps, {summary['seconds']:.0f} s)"
+                + (f"; cameras {few} kept less than half of what they saw" if few else ""),
                 file=sys.stderr,
             )
     return BundleAdjustment(cameras=cameras, rounds=rounds, refinement=refinement)

@@ -453,3 +453,21 @@ def test_aniposelib_file_refuses_what_aniposelib_cannot_hold(tmp_path):
     with pytest.raises(ValueError, match="image_size"):
         mc.io.save_aniposelib(path, rig, None)
     assert not path.exists()
+
+
+def test_bundle_adjust_names_a_camera_whose_observations_it_dropped():
+    """On the real 12-camera rig one camera started ~250 px off, kept none of its observations
+    within the thresholds, and came back "0.00 px, used": a fit it never had. A camera that saw
+    none of the points has no RMS (NaN), and one that kept less than half of what it saw is
+    `doubtful`, named in `messages()`."""
+    rig = mc.synthetic.random_rig(jax.random.key(34), 12, mc.targets.box_corner_grid(3))
+    tracks = np.asarray(rig.pixels).copy()
+    tracks[2] += 30.0  # camera 2's tracks wrong: its reprojections ~34 px off, the others' 4-10
+    out = mc.bundle_adjust(rig.cameras, tracks, distortion=(), thresholds=(20.0,), max_steps=10)
+    last = out.rounds[-1]
+    assert last["saw"][2] == 27 and last["kept"][2] == 0 and min(np.delete(last["kept"], 2)) > 20
+    assert np.isnan(out.refinement.rms_after[2]) and bool(out.refinement.used[2])
+    assert np.flatnonzero(out.doubtful).tolist() == [2] and not out.ok
+    assert "camera 2 kept 0 of the 27 observations it saw within 20 px" in out.messages()
+    assert "cameras [2] saw none of the points" in out.messages()
+    np.testing.assert_array_equal(out.cameras.t[2], rig.cameras.t[2])  # held where it was
