@@ -178,6 +178,25 @@ def test_point_sets_batch_like_separate_calls_and_gradients_are_right():
     central_difference_check(lambda px: mc.triangulate(cameras, px).points, sets[0], eps=1e-5)
 
 
+def test_many_small_point_sets_are_triangulated_as_one_set():
+    """1000 frames of 6 body parts from 12 cameras (DeepLabCut's layout) took 1.2-1.6 s warm
+    against 0.02 s flat: each frame's 6 points were padded to a bucket of 352. Called from
+    Python, the sets' points are one set now: the answer is the flat call's, bit for bit (and
+    the user's `jax.jit`, which vmaps over the sets, agrees to rounding)."""
+    cameras, world = ring(12, seed=10)
+    world = np.random.default_rng(10).uniform(-50.0, 50.0, (6000, 3)) + np.asarray(world).mean(0)
+    pixels = np.array(cameras.project(world))
+    pixels[np.random.default_rng(11).random(pixels.shape[:2]) < 0.3] = np.nan
+    sets = np.moveaxis(pixels.reshape(12, 1000, 6, 2), 1, 0)  # (frames, C, parts, 2)
+    flat, batched = mc.triangulate(cameras, pixels), mc.triangulate(cameras, sets)
+    assert batched.points.shape == (1000, 6, 3) and batched.views.shape == (1000, 6)
+    for field in ("points", "views", "rms", "angle", "ok"):
+        a, b = np.asarray(getattr(batched, field)), np.asarray(getattr(flat, field))
+        np.testing.assert_array_equal(a.reshape(b.shape), b, err_msg=field)
+    traced = jax.jit(lambda p: mc.triangulate(cameras, p))(sets)
+    np.testing.assert_allclose(traced.points, batched.points, rtol=1e-12, atol=1e-10)
+
+
 def test_reproject_predicts_every_view():
     cameras, world = ring(3, seed=9)
     pixels = cameras.project(world)
