@@ -391,6 +391,8 @@ def triangulate(
     if mask is None:
         mask = xp.all(xp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
+    if host:
+        _validate.check_placeholders(pixels, mask)
     batch, n = pixels.shape[:-3], pixels.shape[-2]
     if host and batch:  # (C, sets x N): set b's point j is point b N + j
         pixels = np.moveaxis(pixels.reshape(-1, C, n, 2), 0, 1).reshape(C, -1, 2)

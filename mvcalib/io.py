@@ -265,7 +265,11 @@ def load_aniposelib(path) -> tuple[Camera, list[str]]:
     `rotation` (a Rodrigues vector, world to camera) and `translation`; the cameras come back in
     the file's order of `cam_0, cam_1, ...`. Cameras with `fisheye = true` (aniposelib's
     `FisheyeCamera`: `cv2.fisheye`'s k1 k2 k3 k4) come back as `lens="fisheye"`; a file mixing
-    both is refused (ValueError), as a rig has one lens. A `matrix` with a skew entry (K[0,1])
+    both is refused (ValueError), as a rig has one lens. aniposelib's own `CameraGroup.load`
+    orders the tables as strings (`cam_10` before `cam_2`): in a rig of more than ten cameras
+    its camera order is not this one, so match arrays to cameras by the names returned (the
+    mouse rig's tracks follow the numeric order; `save_aniposelib` pads the numbers, so that
+    both orders agree). A `matrix` with a skew entry (K[0,1])
     is read as aniposelib projects it, without (a warning says so). Needs Python >= 3.11
     (`tomllib`).
     """
@@ -461,8 +465,15 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
             raise ValueError(f"save one camera axis; got a rig of shape {cameras.batch_shape}.")
         n = cameras.batch_shape[0]
         names = [f"cam_{i}" for i in range(n)] if names is None else [str(s) for s in names]
-        if len(names) != n or any(not s.isidentifier() for s in names):
-            raise ValueError(f"need {n} names made of letters, digits and '_'; got {names}.")
+        if len(names) != n:
+            raise ValueError(f"{len(names)} names for {n} cameras.")
+        wrong = [s for s in names if not s.isidentifier()]
+        if wrong:
+            raise ValueError(
+                f"OpenCV's YAML keys are letters, digits and '_', not starting with a digit: "
+                f"{', '.join(map(repr, wrong[:3]))}{' ...' if len(wrong) > 3 else ''} "
+                "cannot name a camera (the command line writes '10' as 'cam_10')."
+            )
         if "cameras" in names:
             raise ValueError("a camera may not be named 'cameras': the key that lists them.")
         lines.append("cameras: [ " + ", ".join(f'"{s}"' for s in names) + " ]")

@@ -172,6 +172,12 @@ def test_malformed_csv_gives_one_line_naming_file_and_line(tmp_path, text, messa
     assert "\n" not in str(info.value)
 
 
+def test_opencv_yaml_says_which_names_cannot_be_keys(tmp_path):
+    rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    with pytest.raises(ValueError, match="not starting with a digit: '10', '11' cannot name"):
+        mc.io.save_opencv(tmp_path / "r.yml", rig, names=["10", "11"])
+
+
 def test_camera_names_a_csv_would_read_as_comments_are_refused(tmp_path):
     """A camera named `#1` was written, then its rows skipped as comments: its observations
     were gone, without a word."""
