@@ -36,6 +36,7 @@ import concurrent.futures
 import contextvars
 import functools
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -370,7 +371,9 @@ def ahead(fun, /, *args, **kwargs):
         return None
     token = _AHEAD.set(True)
     try:
-        fun(*args, **kwargs)
+        with warnings.catch_warnings():  # (about stand-in inputs; the real call warns of its own)
+            warnings.simplefilter("ignore")
+            fun(*args, **kwargs)
     except _Lowered as lowered:
         return lowered.stand_in
     except Exception:  # noqa: BLE001 (an error: the real call will raise it)
