@@ -471,3 +471,17 @@ def test_bundle_adjust_names_a_camera_whose_observations_it_dropped():
     assert "camera 2 kept 0 of the 27 observations it saw within 20 px" in out.messages()
     assert "cameras [2] saw none of the points" in out.messages()
     np.testing.assert_array_equal(out.cameras.t[2], rig.cameras.t[2])  # held where it was
+
+
+def test_bundle_adjust_with_one_lens_for_every_camera():
+    rig = mc.synthetic.random_rig(jax.random.key(35), 6, mc.targets.box_corner_grid(3))
+    K = jnp.broadcast_to(rig.cameras.K[0], rig.cameras.K.shape)
+    one_lens = mc.Camera.from_matrices(K, rig.cameras.R, rig.cameras.t)
+    pixels = one_lens.project(rig.world)
+    start = eqx.tree_at(
+        lambda c: c.alpha_u, one_lens, one_lens.alpha_u * (1 + 0.01 * jnp.arange(6))
+    )
+    out = mc.bundle_adjust(start, pixels, distortion=(), thresholds=(20.0,), max_steps=20,
+                           shared_intrinsics=True)  # fmt: skip
+    assert np.ptp(np.asarray(out.cameras.alpha_u)) == 0.0  # one lens
+    assert out.rounds[-1]["after"] < 0.1 < out.rounds[-1]["before"]
