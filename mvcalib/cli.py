@@ -1086,8 +1086,9 @@ def _calibrate_rig(args) -> int:
     print()
     _print_intrinsics(result, obs.cameras)
     messages = result.messages()
-    for i in np.flatnonzero(~ok):
-        print(f"{obs.cameras[i]}: {messages[i]}")
+    for i, message in enumerate(messages):
+        if not ok[i] or message != Status.OK.message:  # (an OK camera's notes too)
+            print(f"{obs.cameras[i]}: {message}")
     n_observed = int(np.asarray(result.observed).sum())
     print(
         f"all cameras: {_count(n_observed, 'observation')}, RMS "
