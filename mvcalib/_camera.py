@@ -294,6 +294,32 @@ class Camera(eqx.Module):
         )
 
     @classmethod
+    def stack(cls, cameras) -> Camera:
+        """A rig from cameras (or rigs, of one lens), stacked along a new leading camera axis:
+        say, two cameras calibrated one by one (`calibrate_planar`'s, OpenCV's) as the start of
+        a stereo pair's `calibrate_rig(..., cameras=rig, fix="intrinsics")`.
+
+        ```python
+        >>> import numpy as np, mvcalib as mc
+        >>> left = mc.Camera(800.0, 800.0, 640.0, 400.0, np.eye(3), [0.0, 0, 0])
+        >>> right = mc.Camera(810.0, 810.0, 630.0, 410.0, np.eye(3), [-120.0, 0, 0])
+        >>> mc.Camera.stack([left, right]).alpha_u.tolist()
+        [800.0, 810.0]
+
+        ```
+        """
+        cameras = list(cameras)
+        if not cameras or not all(isinstance(c, Camera) for c in cameras):
+            raise TypeError("`Camera.stack` takes a sequence of one or more `Camera`s.")
+        lenses = {c.lens for c in cameras}
+        if len(lenses) > 1:
+            raise ValueError(f"a rig has one lens; got cameras of {sorted(lenses)}.")
+        shapes = {c.batch_shape for c in cameras}
+        if len(shapes) > 1:
+            raise ValueError(f"cameras of one batch shape stack; got {sorted(shapes)}.")
+        return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *cameras)
+
+    @classmethod
     def from_projection(cls, P, *, skew: bool = True) -> Camera:
         """Decompose `P ~ K [R | t]` in closed form (the paper's eqs. 16–23).
 

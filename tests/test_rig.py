@@ -356,6 +356,35 @@ def test_views_of_a_board_turned_by_180_degrees_are_left_out_not_the_camera():
     assert all(e < 1.3 * c for e, c in zip(errors, clean_errors)), (errors, clean_errors)
 
 
+def test_a_stereo_pair_goes_into_opencvs_rectification_as_it_is():
+    """A stereo pair is a rig of two: camera 0's frame is the world, so OpenCV's stereo R, T
+    are camera 1's (T as a column: cv2.stereoRectify refuses (3,)), the distortion in OpenCV's
+    order. Rectified with them, the board's corners lie on the same rows in both images (to
+    the noise), and the baseline is the true one; started from cameras calibrated one by one
+    (`Camera.stack`) with their intrinsics held, too."""
+    cv2 = pytest.importorskip("cv2")
+    rig = _rig("board", noise=0.3)  # cameras 0 and 1, neighbours in the ring
+    target, pixels, mask = (
+        np.asarray(rig.target),
+        np.asarray(rig.pixels)[:2],
+        np.asarray(rig.mask)[:2],
+    )
+    result = mc.calibrate_rig(target, pixels, mask)
+    K, dist = np.asarray(result.cameras.K), np.asarray(result.cameras.dist)
+    R, T = np.asarray(result.cameras.R[1]), np.asarray(result.cameras.t[1]).reshape(3, 1)
+    R1, R2, P1, P2 = cv2.stereoRectify(K[0], dist[0], K[1], dist[1], (1280, 800), R, T)[:4]
+    both = mask[0] & mask[1]
+    rows = [cv2.undistortPoints(pixels[c][both].reshape(-1, 1, 2), K[c], dist[c], R=r, P=p)[:, 0, 1]
+            for c, r, p in ((0, R1, P1), (1, R2, P2))]  # fmt: skip
+    assert np.sqrt(np.mean((rows[0] - rows[1]) ** 2)) < 0.6  # px (noise 0.3 px in each)
+    truth = np.linalg.norm(np.asarray(rig.cameras.center[1] - rig.cameras.center[0]))
+    assert abs(np.linalg.norm(T) / truth - 1) < 1e-3
+    alone = [mc.calibrate_planar(target, pixels[c][mask[c].all(-1)]).camera[0] for c in (0, 1)]
+    held = mc.calibrate_rig(target, pixels, mask, cameras=mc.Camera.stack(alone), fix="intrinsics")
+    assert bool(held.ok.all())
+    np.testing.assert_array_equal(np.asarray(held.cameras.K), np.asarray(mc.Camera.stack(alone).K))
+
+
 def test_a_blurred_camera_keeps_its_sound_frames_under_a_robust_loss():
     """A stereo user's second camera saw the board blurred (2.7 px against 0.35): judged against
     the median pair of the whole rig, 8-12 of its ~30 sound frames were left out silently.
