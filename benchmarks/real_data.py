@@ -17,8 +17,8 @@
   and the dots found misplaced on the target.
 
 Data are read from `$MVCALIB_DATA` (default `../shared/data`); see its SOURCE.md.
-`--quick` samples fewer tracks for the bundle adjustment (300 instead of 500, 2 rounds instead
-of 3). Run from the repository root: `python benchmarks/real_data.py [--quick]`; results go to
+`--quick` samples fewer tracks for the bundle adjustment (1000 instead of `bundle_adjust`'s
+default 2000, 2 rounds instead of 3). Run from the repository root: `python benchmarks/real_data.py [--quick]`; results go to
 `benchmarks/results/real_data.json`.
 """
 
@@ -126,7 +126,7 @@ def aniposelib(quick: bool) -> dict:
     out = mc.bundle_adjust(
         cameras,
         tracks,
-        max_points=300 if quick else 500,
+        max_points=1000 if quick else 2000,
         thresholds=(50.0, 20.0) if quick else (50.0, 20.0, 10.0),
         progress=True,
     )

@@ -784,7 +784,7 @@ def _schur_solve(n: _Normal, damping):
     dV = floor(jnp.diagonal(n.V, axis1=-2, axis2=-1))
     U = n.U + damping * jax.vmap(jnp.diag)(dU)
     V = n.V + damping * jax.vmap(jnp.diag)(dV)
-    V_inv = jax.vmap(lambda v: _scaled_solve(v, jnp.eye(6, dtype=dtype)))(V)
+    V_inv = jax.vmap(lambda v: _scaled_solve(v, jnp.eye(v.shape[-1], dtype=dtype)))(V)
     Y = jnp.einsum("cfpi,fij->cfpj", n.W, V_inv)
     S = jnp.einsum("cfpi,dfqi->cpdq", Y, n.W).reshape(C * P, C * P)
     S = _block_diagonal(U) - S
@@ -871,12 +871,12 @@ class _SchurLM(optx.AbstractLeastSquaresSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, f_struct, aux_struct, tags
-        (C, P), F, dtype = y["cams"].shape, y["frames"].shape[0], y["cams"].dtype
+        (C, P), (F, k), dtype = y["cams"].shape, y["frames"].shape, y["cams"].dtype
         zeros = lambda *shape: jnp.zeros(shape, dtype)  # noqa: E731
         return _SchurLMState(
             # (not `jax.eval_shape` of the normal equations: that traces them once more)
             normal=_Normal(
-                zeros(), zeros(C, P, P), zeros(F, 6, 6), zeros(C, F, P, 6), zeros(C, P), zeros(F, 6)
+                zeros(), zeros(C, P, P), zeros(F, k, k), zeros(C, F, P, k), zeros(C, P), zeros(F, k)
             ),
             fresh=jnp.asarray(True),
             damping=jnp.asarray(self.initial_damping, dtype),
