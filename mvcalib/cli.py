@@ -1085,6 +1085,7 @@ def _calibrate_rig(args) -> int:
     written = _write_rig(args, result.cameras, obs.cameras, status, result.camera_rms, meta)
     print()
     _print_intrinsics(result, obs.cameras)
+    _print_poses(result, obs.cameras)
     messages = result.messages()
     for i, message in enumerate(messages):
         if not ok[i] or message != Status.OK.message:  # (an OK camera's notes too)
@@ -1178,6 +1179,34 @@ def _print_intrinsics(result, names) -> None:
             f"poorly (a principal point's standard error above {_LOOSE_CENTRE_PX:g} px or a focal "
             f"length's above {_LOOSE_FOCAL:.0%}): record them at more angles and across the "
             "whole image, or hold known ones with --intrinsics ... --fix intrinsics"
+        )
+    print()
+
+
+def _print_poses(result, names) -> None:
+    """Each calibrated camera's centre in the world frame (the target's units), its distance
+    from the first calibrated camera (a stereo pair's baseline) and its rotation from it
+    (degrees), with the centre's standard error: what a stereo user reads off OpenCV's R, T."""
+    import numpy as np
+
+    ok = np.flatnonzero(np.asarray(result.ok))
+    if len(ok) < 2:
+        return
+    centre, R = np.asarray(result.cameras.center), np.asarray(result.cameras.R)
+    std = np.linalg.norm(np.asarray(result.position_std), axis=-1)
+    first = ok[0]
+    width = max(6, *map(len, map(str, names)))
+    print(
+        f"{'camera':<{width}}  {'centre (x, y, z)':>32}  {f'from {names[first]}':>12}  "
+        f"{'rotation':>9}  {'centre std':>10}"
+    )
+    for c in ok:
+        cosine = (np.trace(R[c] @ R[first].T) - 1.0) / 2.0
+        angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+        xyz = ", ".join(f"{v + 0.0:.4g}" for v in centre[c])  # (+ 0.0: no "-0")
+        print(
+            f"{names[c]:<{width}}  {xyz:>32}  {np.linalg.norm(centre[c] - centre[first]):>12.5g}  "
+            f"{angle:>8.3f}°  {std[c]:>10.2g}"
         )
     print()
 

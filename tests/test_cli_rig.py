@@ -80,6 +80,10 @@ def test_synthetic_rig_is_calibrated_saved_and_drawn(tmp_path, capsys, cache_off
     std = np.linalg.norm(meta["position_std"], axis=-1)
     assert std[0] == 0 and np.all(error[1:] < 4 * std[1:]) and error.max() < 0.02  # metres
     np.testing.assert_allclose(cameras.alpha_u, rig.cameras.alpha_u, rtol=0.01)
+    # each centre, its distance from the first camera (a stereo baseline) and rotation from it
+    baseline = np.linalg.norm(np.asarray(cameras.center[1] - cameras.center[0]))
+    row = re.search(r"^cam b\s+[-\d., e]+?\s{2,}([\d.]+)\s+([\d.]+)°", stdout, re.M)
+    assert "from cam a" in stdout and abs(float(row.group(1)) - baseline) < 1e-4 * baseline
 
     picture = iio.imread(figure)
     assert picture.shape[1] > 1000 and picture[..., :3].std() > 10  # something drawn
