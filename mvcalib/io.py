@@ -10,6 +10,7 @@ renamed over it, so an interrupted write never leaves a half-written rig.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import operator
@@ -110,6 +111,26 @@ def _check_cameras(cameras, function: str) -> None:
     raise TypeError(f"{function} saves an mvcalib.Camera; got {name}{hint}.")
 
 
+def _reads_rig(load):
+    """A rig reader that warns where JAX's default float32 holds what it read (x64 off): the
+    file's values rounded to ~7 digits, which a save writes back as they are (a round trip
+    changed `u0 = 639.3` to `639.2999877929688`, silently)."""
+
+    @functools.wraps(load)
+    def read(*args, **kwargs):
+        out = load(*args, **kwargs)
+        if not jax.config.jax_enable_x64:
+            warnings.warn(
+                f"{load.__name__}: the rig is held in float32 (JAX's default), its values rounded "
+                "to ~7 digits, and saving it writes them so; "
+                'jax.config.update("jax_enable_x64", True) before loading keeps the file\'s.',
+                stacklevel=2,
+            )
+        return out
+
+    return read
+
+
 def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=None):
     """Save a rig (a `Camera` with a camera axis, or one camera) as versioned JSON, atomically.
 
@@ -161,6 +182,7 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
     return write_atomic(path, json.dumps(document, indent=1, allow_nan=False) + "\n")
 
 
+@_reads_rig
 def load_json(path, *, record: bool = False):
     """Load a rig saved by `save_json`: `(cameras, names)`; `ValueError` if it is not one.
 
@@ -258,6 +280,7 @@ def _read_toml(path: pathlib.Path) -> dict:
         raise ValueError(f"{path}: not a readable TOML calibration ({error})") from None
 
 
+@_reads_rig
 def load_aniposelib(path) -> tuple[Camera, list[str]]:
     """Load an aniposelib / anipose calibration file (TOML): `(cameras, names)`.
 
@@ -483,6 +506,7 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     return write_atomic(path, "\n".join(lines) + "\n")
 
 
+@_reads_rig
 def load_opencv(path) -> tuple[Camera, list[str]]:
     """Load a file written by `save_opencv` (or any FileStorage YAML with `camera_matrix`,
     `distortion_coefficients`, `R`, `T`, at the top level or in per-camera maps listed by
@@ -753,6 +777,7 @@ _COLMAP_MODELS = {
 }
 
 
+@_reads_rig
 def load_colmap(folder) -> tuple[Camera, list[str]]:
     """Read a COLMAP text model's cameras and images: one mvcalib camera per image, `(cameras,
     image names)`, in the order of `images.txt`. The camera models read are those a lens of
@@ -1570,6 +1595,7 @@ def load_caliscope(xy_csv) -> Observations:
     return _observations(target, seen, [f"cam_{c}" for c in order], frames, target)
 
 
+@_reads_rig
 def load_caliscope_cameras(camera_array_toml) -> tuple[Camera, list[str]]:
     """Load caliscope's `camera_array.toml`: `(cameras, names)`.
 
@@ -1828,6 +1854,7 @@ def _openptv_rotation(omega: float, phi: float, kappa: float) -> np.ndarray:
     )
 
 
+@_reads_rig
 def load_openptv_calibration(
     ori, addpar=None, *, ptv_par=None, pixel_size=None, image_size=None, scx_scales=None
 ) -> Camera:

@@ -188,6 +188,24 @@ def test_camera_names_a_csv_would_read_as_comments_are_refused(tmp_path):
     assert not (tmp_path / "p.csv").exists()
 
 
+def test_a_rig_read_in_float32_says_so(tmp_path):
+    """With JAX's default float32 a loaded rig was rounded to ~7 digits and saved back so
+    (`u0 = 639.3` became 639.2999877929688), silently; the readers say so (a fresh process:
+    the tests run in float64)."""
+    import subprocess
+    import sys
+
+    path = mc.io.save_json(
+        tmp_path / "r.json", mc.synthetic.random_rig(jax.random.key(0), 2).cameras
+    )
+    code = f"import mvcalib as mc; mc.io.load_json({str(path)!r})"
+    for x64, warned in (("0", True), ("1", False)):
+        env = {**__import__("os").environ, "JAX_ENABLE_X64": x64}
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+        assert run.returncode == 0, run.stderr
+        assert ("load_json: the rig is held in float32" in run.stderr) == warned, run.stderr
+
+
 def test_json_rig_gives_back_what_was_stored_for_the_record(tmp_path):
     rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras
     path = mc.io.save_json(tmp_path / "r.json", rig, status=[0, 6, 0], rms=[0.25, 9.5, np.nan],
