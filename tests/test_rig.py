@@ -393,7 +393,8 @@ def test_a_blurred_camera_keeps_its_sound_frames_under_a_robust_loss():
     rig = _rig("board", noise=0.3)
     target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
     pixels = pixels.copy()
-    pixels[2] += np.random.default_rng(5).normal(scale=2.4, size=pixels[2].shape)  # ~3 px
+    # ~7 px RMS: judged against the whole rig's median pair (0.4 px), 20 of its 32 pairs went
+    pixels[2] += np.random.default_rng(5).normal(scale=5.0, size=pixels[2].shape)
     result = mc.calibrate_rig(target, pixels, mask, loss=mc.Huber(1.0))
     assert bool(result.ok.all())
     observed = mask.any(-1) & ~np.asarray(result.skipped)
