@@ -110,6 +110,10 @@ OWN_FRAMES = 128
 
 
 # ------------------------------------------------------------------------------ the result
+_TOO_FEW_IN_A_RIG = (
+    "too few points: no frame shows it enough of the target (4 points of a board, 6 of a 3-D "
+    "target) to pose it"
+)
 _DEGENERATE_IN_A_RIG = (
     "degenerate: its frames of the target do not determine its intrinsics (one view of a board, "
     "or views of it from one direction, cannot): record more frames of it at other angles, or "
@@ -218,13 +222,15 @@ class RigCalibration(eqx.Module):
 
     def messages(self) -> list[str]:
         """One line per camera: its status's message, in a rig's words where they differ from
-        a single camera's (a degenerate camera's frames did not determine its intrinsics); for a
+        a single camera's (a degenerate camera's frames did not determine its intrinsics; too
+        few points are fewer than a board's 4 or a 3-D target's 6 in every frame); for a
         calibrated camera fitted by least squares, a note where some of its observations lie
         far beyond the rest (`_far_note`)."""
-        messages = [
-            _DEGENERATE_IN_A_RIG if s == Status.DEGENERATE else Status(int(s)).message
-            for s in np.asarray(self.status)
-        ]
+        in_a_rig = {
+            Status.DEGENERATE: _DEGENERATE_IN_A_RIG,
+            Status.TOO_FEW_POINTS: _TOO_FEW_IN_A_RIG,
+        }
+        messages = [in_a_rig.get(int(s), Status(int(s)).message) for s in np.asarray(self.status)]
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
         if np.ndim(self.status) != 1 or (used != inliers).any():  # (a robust loss's)
             return messages

@@ -322,8 +322,9 @@ def build_parser() -> argparse.ArgumentParser:
         "convert",
         "a rig file in another format",
         "Read a rig (mvcalib's JSON, OpenCV's YAML, a COLMAP text model, caliscope's or "
-        "aniposelib's TOML) and write it as JSON, OpenCV's YAML or a COLMAP model. Cameras "
-        "that are not calibrated (NaN) are kept in JSON and left out of the others.",
+        "aniposelib's TOML) and write it as JSON, OpenCV's YAML, a COLMAP model or aniposelib's "
+        "TOML. Cameras that are not calibrated (NaN, or a status other than OK in a JSON rig) "
+        "are kept in JSON, with their status, RMS and notes, and left out of the others.",
     )
     convert.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
     _rig_output(convert, "every camera", "--image-size")

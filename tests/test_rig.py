@@ -385,6 +385,19 @@ def test_a_stereo_pair_goes_into_opencvs_rectification_as_it_is():
     np.testing.assert_array_equal(np.asarray(held.cameras.K), np.asarray(mc.Camera.stack(alone).K))
 
 
+def test_a_camera_that_never_sees_enough_of_the_board_is_told_so_in_a_rigs_words():
+    """Its status is TOO_FEW_POINTS, whose message was the DLT's ("fewer than 6 visible points:
+    the 11 unknowns of P"), where a board needs 4 points a frame."""
+    rig = _rig("board", noise=0.3)
+    target, pixels, mask = (np.asarray(a) for a in (rig.target, rig.pixels, rig.mask))
+    mask = mask.copy()
+    mask[5] &= np.arange(mask.shape[-1]) < 3  # camera 5: 3 corners a frame at most
+    # (intrinsics given: without them, its undetermined intrinsics make it DEGENERATE first)
+    result = mc.calibrate_rig(target, pixels, mask, cameras=rig.cameras, fix="intrinsics")
+    assert int(result.status[5]) == mc.Status.TOO_FEW_POINTS
+    assert "4 points of a board" in result.messages()[5]
+
+
 def test_a_blurred_camera_keeps_its_sound_frames_under_a_robust_loss():
     """A stereo user's second camera saw the board blurred (2.7 px against 0.35): judged against
     the median pair of the whole rig, 8-12 of its ~30 sound frames were left out silently.
