@@ -523,8 +523,12 @@ def _initialise(
     if given and not any(i in POSE_INDICES for i in free):  # the poses held: the given ones
         linked, R, t = jnp.ones_like(linked), cameras.R, cameras.t
     usable = linked & jnp.any(ok, 1)
+    # no frame with enough points is TOO_FEW_POINTS before its intrinsics, which no frame could
+    # determine, are DEGENERATE (as the docstring said: a camera that saw 3 corners a frame was
+    # told to record more frames at other angles)
+    too_few = jnp.all(pair_status == Status.TOO_FEW_POINTS, 1)
     status = jnp.select(
-        [~jnp.any(ok | ~determined[:, None], 1), ~determined, ~linked],
+        [too_few | ~jnp.any(ok | ~determined[:, None], 1), ~determined, ~linked],
         [Status.TOO_FEW_POINTS, Status.DEGENERATE, Status.NOT_CONNECTED],
         Status.OK,
     )
