@@ -23,6 +23,12 @@ from ._render import true_centres as true_centres
 from ._render import visible_dots as visible_dots
 from .targets import Target, box_corner
 
+__all__ = [
+    "SyntheticRig", "random_cameras", "random_rig", "observe", "look_at",
+    "PaperScene", "paper_scene", "BoardRig", "board", "board_rig",
+    "render", "visible_dots", "true_centres", "ellipse_centres", "dot_normals",
+]  # fmt: skip
+
 
 class SyntheticRig(eqx.Module):
     """Cameras with known parameters looking at a target, and what they observe.

@@ -8,6 +8,11 @@ import itertools
 
 import numpy as np
 
+__all__ = [
+    "Target", "from_file", "dot_grid", "plate", "box_corner", "box_corner_grid",
+    "BOX_CORNER_FIDUCIALS", "check_target",
+]  # fmt: skip
+
 
 @dataclasses.dataclass(frozen=True)
 class Target:
