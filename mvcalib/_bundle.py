@@ -189,6 +189,9 @@ def refine_rig(
     - `shared_intrinsics`: one set of intrinsics and distortion for all cameras (one physical
       camera seen in several snapshots); the seed is camera 0's.
     - `distortion`, `fix`, `skew`, `loss`: as for `refine`.
+    - `solver`: an optimistix least-squares solver; default `default_solver`'s choice for the
+      problem's size and dtype (bundle adjustment: the points eliminated from each step).
+    - `max_steps`: the solver's limit; `ok` is False where it was reached.
 
     **Example:**
 
@@ -785,6 +788,7 @@ def bundle_adjust(
     - `cameras`: the starting rig `(C,)`.
     - `pixels`, `mask`: tracks `(C, N, 2)`; NaN (or `mask` False) where a camera did not see it.
     - `thresholds`: outlier thresholds in pixels, one round each.
+    - `min_views`: the tracks sampled are those seen by at least this many cameras.
     - `max_points`: how many tracks (seen by >= `min_views` cameras) to sample; bundle
       adjustment needs far fewer points than a recording has to fix 12 cameras (the real mouse
       rig's: held-out median error 0.97 px from 1000 tracks, 0.77 px from 2000 or 4000; each
