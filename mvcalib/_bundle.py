@@ -745,6 +745,14 @@ class BundleAdjustment:
 
     def messages(self) -> str:
         message = self.refinement.messages()
+        if int(self.refinement.result) == int(optx.RESULTS.max_steps_reached._value):  # noqa: SLF001
+            message = message.replace(
+                _RESULT_MESSAGES[int(self.refinement.result)],
+                "not converged within the last round's `max_steps`: bundle adjustment's steps "
+                "creep along flat valleys (a focal length against the distortion); raise "
+                "`max_steps`, hold what the tracks pin down poorly (`fix=`), or, for cameras of "
+                "one model, `shared_intrinsics=True`",
+            )
         last = self.rounds[-1]
         for i in np.flatnonzero(self.doubtful):
             kept, saw = last["kept"][i], last["saw"][i]

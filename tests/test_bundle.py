@@ -485,3 +485,13 @@ def test_bundle_adjust_with_one_lens_for_every_camera():
                            shared_intrinsics=True)  # fmt: skip
     assert np.ptp(np.asarray(out.cameras.alpha_u)) == 0.0  # one lens
     assert out.rounds[-1]["after"] < 0.1 < out.rounds[-1]["before"]
+
+
+def test_bundle_adjust_unconverged_says_what_to_try_for_bundle_adjustment():
+    """It said refine's words ("one view of a plane with free intrinsics"), which fit no
+    bundle adjustment."""
+    rig = mc.synthetic.random_rig(jax.random.key(37), 6, mc.targets.box_corner_grid(3))
+    start = eqx.tree_at(lambda c: c.alpha_u, rig.cameras, rig.cameras.alpha_u * 1.05)
+    out = mc.bundle_adjust(start, rig.pixels, thresholds=(200.0,), max_steps=2)
+    assert not bool(out.refinement.ok)
+    assert "bundle adjustment's steps creep" in out.messages() and "plane" not in out.messages()
