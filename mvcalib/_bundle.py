@@ -745,7 +745,9 @@ class BundleAdjustment:
 
     def messages(self) -> str:
         message = self.refinement.messages()
-        if int(self.refinement.result) == int(optx.RESULTS.max_steps_reached._value):  # noqa: SLF001
+        unconverged = {"max_steps_reached", "nonlinear_max_steps_reached"}
+        codes = {int(getattr(optx.RESULTS, name)._value) for name in unconverged}  # noqa: SLF001
+        if int(self.refinement.result) in codes:
             message = message.replace(
                 _RESULT_MESSAGES[int(self.refinement.result)],
                 "not converged within the last round's `max_steps`: bundle adjustment's steps "
