@@ -781,7 +781,9 @@ def calibrate_planar(
       single view only two intrinsics are determined; that case is not supported.)
     - `distortion`: which of the lens's coefficients the refinement estimates; `()` for none.
       By default `("k1", "k2")` of a pinhole's `(k1, k2, p1, p2, k3)` (Zhang's radial model),
-      all four of a fisheye's `(k1, k2, k3, k4)` (as `cv2.fisheye.calibrate`).
+      all four of a fisheye's `(k1, k2, k3, k4)` (as `cv2.fisheye.calibrate`). `refine` and
+      `calibrate_rig` take OpenCV's `(k1, k2, p1, p2)` by default, and `cv2.calibrateCamera`
+      `(k1, k2, p1, p2, k3)`: name them to compare like with like.
     - `refine`: run step 4; without it the result is the closed form (no distortion).
     - `fix`, `loss`, `max_steps`: as for `mvcalib.refine` (e.g. `fix="principal_point"`,
       `loss=mc.Huber(1.0)`); `fix` names from `("alpha_u", "alpha_v", "u0", "v0", "skew",

@@ -346,7 +346,8 @@ def triangulate(
     - `cameras`: a rig `(C,)` in one (global) frame. A camera with a non-finite parameter (one
       that `calibrate` could not solve is NaN) sees nothing.
     - `pixels`: `(..., C, N, 2)`: point n as seen by camera c; leading axes are point sets.
-    - `mask`: `(..., C, N)` visibility; default: the finite pixels. Hidden views have no
+    - `mask`: `(..., C, N)` visibility, or any shape that broadcasts to it (`(N,)` per point,
+      `(C, 1)` per camera); default: the finite pixels. Hidden views have no
       influence, even if NaN.
     - `refine`: polish each point by minimising its reprojection error.
     - `min_angle`: the smallest ray angle (degrees) for `ok`.
