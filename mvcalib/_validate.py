@@ -202,12 +202,13 @@ def check_placeholders(pixels, mask) -> None:
     detections, they gave triangulated points 13,000 px off (an animal-pose trial), silently.
     Concrete arrays only."""
     pixels, mask = np.asarray(pixels), np.broadcast_to(np.asarray(mask), np.shape(pixels)[:-1])
-    visible = pixels[mask]
+    visible = np.count_nonzero(mask)  # (counted in place: copying out the visible pixels of
+    # 176,868 tracks x 12 cameras took 0.28 s of `triangulate`, these counts 6 ms)
     for value in (-1.0, 0.0):
-        count = int(np.sum(np.all(visible == value, axis=-1)))
-        if count >= 2 and count > 0.01 * len(visible):
+        count = np.count_nonzero((pixels[..., 0] == value) & (pixels[..., 1] == value) & mask)
+        if count >= 2 and count > 0.01 * visible:
             warnings.warn(
-                f"{count} of the {len(visible)} visible pixels are exactly ({value:g}, {value:g}): "
+                f"{count} of the {visible} visible pixels are exactly ({value:g}, {value:g}): "
                 "if they mark points not seen, pass NaN there (or a `mask`); as they are, they "
                 "count as detections.",
                 stacklevel=_outside_mvcalib(),
