@@ -1217,11 +1217,11 @@ def _far_note(lengths) -> str:
     )
 
 
-def _worst_pairs(result: RigCalibration, loss, count: int = 3) -> str:
-    """Where a rig's solve failed: its worst (camera, frame) pairs by RMS, and, without a
-    robust loss, that one would discount a frame of wrong detections. (A stereo pair whose
-    second camera saw the board turned by 180 degrees in one frame was told only that the
-    reference camera, the other one, could not be calibrated.)"""
+def _worst_pairs(result: RigCalibration, count: int = 3) -> str:
+    """Where a rig's solve failed: its worst (camera, frame) pairs by RMS, as a list in words
+    (empty where no pair was used). (A stereo pair whose second camera saw the board turned by
+    180 degrees in one frame was told only that the reference camera, the other one, could not
+    be calibrated.)"""
     square = np.sum(np.asarray(result.residuals) ** 2, -1)
     used = np.asarray(result.used)
     n = used.sum(-1)
@@ -1229,14 +1229,7 @@ def _worst_pairs(result: RigCalibration, loss, count: int = 3) -> str:
     rms = np.where(n > 0, rms, -np.inf)
     worst = np.argsort(rms, axis=None)[::-1][:count]
     pairs = [np.unravel_index(i, rms.shape) for i in worst if np.isfinite(rms.flat[i])]
-    if not pairs:
-        return ""
-    listed = ", ".join(f"camera {c} in frame {f} (RMS {rms[c, f]:.3g} px)" for c, f in pairs)
-    robust = "" if loss is not None else (
-        "; a robust loss (loss=mc.Huber(2.0)) sets aside a frame whose detections are wrong, "
-        "such as a board seen turned by 180 degrees"
-    )  # fmt: skip
-    return f". The worst fits: {listed}{robust}"
+    return ", ".join(f"camera {c} in frame {f} (RMS {rms[c, f]:.3g} px)" for c, f in pairs)
 
 
 def _poor_pairs(square, used, pixels, ok, max_relative_rms, loss):
@@ -1527,10 +1520,10 @@ def calibrate_rig(
         )
         statuses = np.asarray(result.status) if concrete else None
         if concrete and (statuses == Status.POOR_FIT).all():
-            worst = _worst_pairs(result, loss="given")  # (the message names the loss itself)
+            worst = _worst_pairs(result)
             raise SolveFailed(
                 float(result.rms), int(result.iterations), result.cameras.lens,
-                worst.replace(". The worst fits", "; the worst fits"),
+                f"; the worst fits: {worst}" if worst else "",
             )  # fmt: skip
         if concrete and (status := int(statuses[solve_reference])) != Status.OK:
             why = Status(status).message
@@ -1546,7 +1539,16 @@ def calibrate_rig(
                     "more tilted to one another (and check that `pixels` is (C, F, N, 2), "
                     "cameras first)"
                 )
-            other = "" if C == 1 else f"{_worst_pairs(result, loss)}. Choose another `reference`"
+            other = ""
+            if C > 1 and (worst := _worst_pairs(result)):
+                other = f". The worst fits: {worst}"
+                if loss is None:
+                    other += (
+                        "; a robust loss (loss=mc.Huber(2.0)) sets aside a frame whose "
+                        "detections are wrong, such as a board seen turned by 180 degrees"
+                    )
+            if C > 1:
+                other += ". Choose another `reference`"
             if C > 1 and C > F:
                 other += " (and check that `pixels` is (C, F, N, 2), cameras first)"
             raise ValueError(
