@@ -738,15 +738,18 @@ _RIGS = (
 )
 
 
-def _load_rig(path):
+def _load_rig(path, *, record: bool = False):
     """`(cameras (C,), names)` from a JSON rig, an OpenCV YAML file, a COLMAP folder, or
-    caliscope's or aniposelib's TOML; `ValueError` saying which formats are read otherwise."""
+    caliscope's or aniposelib's TOML; `ValueError` saying which formats are read otherwise.
+    With `record`, `(cameras, names, record)`: a JSON rig's stored status, RMS and meta
+    (`io.load_json(..., record=True)`), None for the other formats."""
     import jax
 
     from . import io
 
     path = pathlib.Path(path)
     suffix = path.suffix.lower()
+    stored = []  # (a JSON rig's record, read with it)
     if path.is_dir():
         cameras, names = io.load_colmap(path)
     elif suffix in (".yml", ".yaml"):
@@ -757,14 +760,16 @@ def _load_rig(path):
         raise ValueError(f"{path}: a CSV file is not a rig; {_RIGS}.")
     else:
         try:
-            cameras, names = io.load_json(path)
+            cameras, names, *stored = io.load_json(path, record=record)
         except ValueError as error:  # (any name but .json: say what else a rig may be)
             if suffix == ".json":
                 raise
             raise ValueError(f"{_one_line(error).rstrip('.')}; {_RIGS}.") from None
     if cameras.batch_shape == ():
         cameras = jax.tree_util.tree_map(lambda a: a[None], cameras)
-    return cameras, names
+    if not record:
+        return cameras, names
+    return cameras, names, stored[0] if stored else None
 
 
 def _convert(args) -> int:
@@ -772,13 +777,10 @@ def _convert(args) -> int:
 
     from ._status import Status
 
-    cameras, names = _load_rig(args.rig)
+    cameras, names, record = _load_rig(args.rig, record=True)
     status = np.where(_calibrated(cameras), Status.OK, Status.NON_FINITE).astype(np.int32)
     rms, meta = np.full(len(names), np.nan), {}
-    if _is_json_rig(args.rig):  # its statuses, RMS and meta carry over
-        from . import io
-
-        _, _, record = io.load_json(args.rig, record=True)
+    if record is not None:  # a JSON rig's statuses, RMS and meta carry over
         if record["status"] is not None:
             status = np.where(status == Status.OK, record["status"], status).astype(np.int32)
         rms = rms if record["rms"] is None else record["rms"]
@@ -790,12 +792,6 @@ def _convert(args) -> int:
         left = [f"{n} ({Status(s).name})" for n, s in zip(names, status) if s != Status.OK]
         print(f"left out, not calibrated: {', '.join(left)}", file=sys.stderr)
     return 0
-
-
-def _is_json_rig(path) -> bool:
-    """Whether `_load_rig` reads `path` as mvcalib's JSON rig."""
-    path = pathlib.Path(path)
-    return not path.is_dir() and path.suffix.lower() not in (".yml", ".yaml", ".toml", ".csv")
 
 
 def _load_toml_rig(path: pathlib.Path):
