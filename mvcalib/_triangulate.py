@@ -399,9 +399,9 @@ def triangulate(
         pixels = np.moveaxis(pixels.reshape(-1, C, n, 2), 0, 1).reshape(C, -1, 2)
         mask = np.moveaxis(mask.reshape(-1, C, n), 0, 1).reshape(C, -1)
     total = pixels.shape[-2]
-    bucketed = host and _buckets.size(total, _buckets.WORK // max(C, 1)) != total
+    n_points = _buckets.size(total, _buckets.WORK // max(C, 1))
+    bucketed = host and n_points != total
     if bucketed:
-        n_points = _buckets.size(total, _buckets.WORK // max(C, 1))
         pixels = _buckets.pad(pixels, -2, n_points, fill=0)
         mask = _buckets.pad(mask, -1, n_points, fill=False)
     work = math.prod(pixels.shape[:-1])

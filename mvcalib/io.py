@@ -91,6 +91,14 @@ def _plain(x):
     return [_plain(v) for v in x]
 
 
+def _names(names, n: int, default: str) -> list[str]:
+    """A rig file's camera names: `names` as strings, one per camera, or `default.format(i)`."""
+    names = [default.format(i) for i in range(n)] if names is None else [str(s) for s in names]
+    if len(names) != n:
+        raise ValueError(f"{len(names)} names for {n} cameras.")
+    return names
+
+
 def _array(x, shape):
     a = np.array(x if x is not None else np.full(shape, np.nan), dtype=object)
     a = np.where(a == None, np.nan, a).astype(float)  # noqa: E711 (elementwise on objects)
@@ -162,9 +170,7 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
     if len(rig.batch_shape) != 1:
         raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
     n = rig.batch_shape[0]
-    names = [f"cam_{i}" for i in range(n)] if names is None else [str(s) for s in names]
-    if len(names) != n:
-        raise ValueError(f"{len(names)} names for {n} cameras.")
+    names = _names(names, n, "cam_{}")
     entries = []
     for i in range(n):
         entry = {"name": names[i]}
@@ -379,9 +385,7 @@ def save_aniposelib(path, cameras: Camera, image_size, *, names=None) -> pathlib
     size = np.broadcast_to(np.asarray(image_size), (n, 2)) if np.ndim(image_size) else None
     if size is None or not np.all(size > 0) or not np.all(size == np.round(size)):
         raise ValueError(f"`image_size` must be (width, height) or ({n}, 2) of positive ints.")
-    names = [str(i) for i in range(n)] if names is None else [str(s) for s in names]
-    if len(names) != n:
-        raise ValueError(f"{len(names)} names for {n} cameras.")
+    names = _names(names, n, "{}")
     rvec = [_rotation_vector(r) for r in rig.R]
 
     def toml(x):  # a TOML value: arrays of floats, ints or a string
@@ -487,9 +491,7 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
         if len(cameras.batch_shape) != 1:
             raise ValueError(f"save one camera axis; got a rig of shape {cameras.batch_shape}.")
         n = cameras.batch_shape[0]
-        names = [f"cam_{i}" for i in range(n)] if names is None else [str(s) for s in names]
-        if len(names) != n:
-            raise ValueError(f"{len(names)} names for {n} cameras.")
+        names = _names(names, n, "cam_{}")
         wrong = [s for s in names if not s.isidentifier()]
         if wrong:
             raise ValueError(
@@ -684,7 +686,8 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
 def _rotation_vector(R: np.ndarray) -> np.ndarray:
     """The rotation vector (Rodrigues', OpenCV's `rvec`) of a rotation matrix, by its
     quaternion: accurate at every angle, 180 degrees too."""
-    w, v = _quaternion(R)[0], _quaternion(R)[1:]
+    q = _quaternion(R)
+    w, v = q[0], q[1:]
     s = np.linalg.norm(v)
     return 2.0 * v / w if s == 0.0 else 2.0 * math.atan2(s, w) * v / s
 
