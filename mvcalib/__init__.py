@@ -44,6 +44,7 @@ _EXPORTS = {
     "_second_look": ("second_look",),
     "_sharding": ("shard",),
     "_status": ("Status",),
+    "_stereo": ("StereoRectification", "essential_matrix", "fundamental_matrix", "stereo_rectify"),
     "_triangulate": ("Triangulation", "reproject", "triangulate"),
     "targets": ("Target",),
 }
@@ -123,6 +124,10 @@ if typing.TYPE_CHECKING:
     from ._second_look import second_look as second_look
     from ._sharding import shard as shard
     from ._status import Status as Status
+    from ._stereo import StereoRectification as StereoRectification
+    from ._stereo import essential_matrix as essential_matrix
+    from ._stereo import fundamental_matrix as fundamental_matrix
+    from ._stereo import stereo_rectify as stereo_rectify
     from ._triangulate import Triangulation as Triangulation
     from ._triangulate import reproject as reproject
     from ._triangulate import triangulate as triangulate
