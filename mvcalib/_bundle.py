@@ -835,6 +835,7 @@ def bundle_adjust(
     seen = np.all(np.isfinite(pixels), -1) & np.asarray(finite_cameras(cameras))[:, None]
     if mask is not None:
         seen &= np.asarray(mask, dtype=bool)
+        _validate.check_hidden_non_finite(pixels, mask)
     _validate.check_placeholders(pixels, seen)
     candidates = np.flatnonzero(seen.sum(0) >= min_views)
     if len(candidates) < 4:

@@ -348,7 +348,8 @@ def triangulate(
     - `pixels`: `(..., C, N, 2)`: point n as seen by camera c; leading axes are point sets.
     - `mask`: `(..., C, N)` visibility, or any shape that broadcasts to it (`(N,)` per point,
       `(C, 1)` per camera); default: the finite pixels. Hidden views have no
-      influence, even if NaN.
+      influence, even if NaN; a NaN or inf pixel counts as hidden whatever the mask says
+      (called with concrete arrays, with a warning).
     - `refine`: polish each point by minimising its reprojection error.
     - `min_angle`: the smallest ray angle (degrees) for `ok`.
     - `max_rms`: the largest reprojection RMS (pixels) for `ok`; default any.
@@ -389,11 +390,14 @@ def triangulate(
         raise ValueError("triangulation needs at least 2 cameras.")
     if not max_rms > 0:
         raise ValueError(f"`max_rms` is a positive number of pixels; got {max_rms!r}.")
+    given = mask is not None
     if mask is None:
         mask = xp.all(xp.isfinite(pixels), -1)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
     if host:
         _validate.check_placeholders(pixels, mask)
+        if given:
+            _validate.check_hidden_non_finite(pixels, mask)
     batch, n = pixels.shape[:-3], pixels.shape[-2]
     if host and batch:  # (C, sets x N): set b's point j is point b N + j
         pixels = np.moveaxis(pixels.reshape(-1, C, n, 2), 0, 1).reshape(C, -1, 2)

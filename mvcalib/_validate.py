@@ -215,6 +215,24 @@ def check_placeholders(pixels, mask) -> None:
             )
 
 
+def check_hidden_non_finite(pixels, mask) -> None:
+    """Warn where the `mask` calls pixels visible that are NaN or inf, in the functions that take
+    them as hidden (`triangulate`, `bundle_adjust`: NaN marks a point not seen there; `calibrate`
+    raises instead): a stale mask silently gave points from fewer views (a user's trial).
+    Concrete arrays only."""
+    pixels, mask = np.asarray(pixels), np.broadcast_to(np.asarray(mask), np.shape(pixels)[:-1])
+    bad = ~np.isfinite(pixels).all(-1) & mask
+    count = np.count_nonzero(bad)
+    if count:
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        warnings.warn(
+            f"{count} pixels that the mask calls visible are NaN or inf (the first at index "
+            f"{first}): they count as hidden. Leave `mask` out to have the finite pixels taken, "
+            "or correct it.",
+            stacklevel=_outside_mvcalib(),
+        )
+
+
 def _outside_mvcalib() -> int:
     """The `stacklevel` of a warning raised here that names the first caller outside mvcalib."""
     package = os.path.dirname(__file__)

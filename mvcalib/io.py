@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _validate
 from ._camera import LENSES, Camera
 
 __all__ = [
@@ -109,8 +110,17 @@ def _array(x, shape):
 
 def _check_cameras(cameras, function: str) -> None:
     """Refuse anything but a `Camera` (a calibration's result is a common slip), saying what to
-    pass instead."""
+    pass instead; and a Camera that no reader would load: traced (inside `jax.jit` or `grad`),
+    or with an `R` that is not a rotation (a `Camera`-shaped gradient or update, which JAX code
+    makes easily, was written and then refused by `load_json`: a user's trial)."""
     if isinstance(cameras, Camera):
+        if not _validate.is_concrete(*jax.tree_util.tree_leaves(cameras)):
+            raise TypeError(
+                f"{function} writes arrays to a file: it needs concrete cameras, outside "
+                "jax.jit, grad and vmap."
+            )
+        names = list(range(math.prod(cameras.batch_shape)))
+        _check_rotations(function, cameras.R, names)
         return
     name = type(cameras).__name__
     fields = [f for f in ("cameras", "camera") if isinstance(getattr(cameras, f, None), Camera)]

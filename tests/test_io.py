@@ -2,7 +2,9 @@
 
 import json
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -282,3 +284,21 @@ def test_saving_a_calibration_result_says_to_pass_its_cameras(tmp_path):
             with pytest.raises(TypeError, match=rf"got {type(wrong).__name__}: .*`result.{field}`"):
                 save(tmp_path / "out", wrong)
     assert not list(tmp_path.iterdir())  # nothing written, no folder made
+
+
+@pytest.mark.parametrize("save", ["save_json", "save_opencv", "save_colmap", "save_aniposelib"])
+def test_writers_refuse_a_camera_no_reader_would_load(tmp_path, save):
+    """A JAX user's trial: a Camera-shaped gradient (`eqx.filter_grad`) was written by
+    `save_json` and refused later by `load_json` (its R is no rotation). The writers refuse it,
+    and a traced Camera, with the reason."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3)
+    cameras = eqx.tree_at(lambda c: (c.skew, c.dist), rig.cameras, replace_fn=jnp.zeros_like)
+    gradient = eqx.filter_grad(lambda c: c.project(rig.world).sum())(cameras)
+    path = tmp_path / ("rig.toml" if save == "save_aniposelib" else "rig")
+    sized = save in ("save_colmap", "save_aniposelib")
+    write = lambda c: getattr(mc.io, save)(path, c, *([(1000, 1100)] if sized else []))  # noqa: E731
+    with pytest.raises(ValueError, match=rf"{save}: camera 0: R is not a rotation"):
+        write(gradient)
+    with pytest.raises(TypeError, match="concrete cameras, outside jax.jit"):
+        jax.jit(write)(cameras)
+    write(cameras)  # (the cameras themselves are written)

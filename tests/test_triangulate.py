@@ -344,6 +344,26 @@ def test_max_rms_leaves_points_whose_pixels_disagree_out_of_ok():
         mc.triangulate(rig.cameras, pixels, max_rms=0.0)
 
 
+def test_nan_pixels_the_mask_calls_visible_are_hidden_with_a_warning():
+    """A JAX user's trial: a NaN pixel with `mask` True gave the point from the other views,
+    `ok`, without a word (`calibrate` raises on the same input). Now it is hidden as before, and
+    said; without a mask, NaN is how a point is marked unseen: no warning."""
+    cameras, world = ring(4, seed=12)
+    pixels = np.array(cameras.project(world))
+    pixels[1, 3] = np.nan
+    mask = np.ones(pixels.shape[:-1], bool)
+    with pytest.warns(UserWarning, match=r"1 pixels that the mask calls visible .* \(1, 3\)"):
+        stale = mc.triangulate(cameras, pixels, mask)
+    hidden = mask.copy()
+    hidden[1, 3] = False
+    expected = mc.triangulate(cameras, pixels, hidden)
+    assert np.array_equal(np.asarray(stale.points), np.asarray(expected.points))
+    assert int(stale.views[3]) == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mc.triangulate(cameras, pixels)
+
+
 def test_placeholder_pixels_for_unseen_points_are_warned_about():
     """Trackers write (-1, -1) or (0, 0) for "not found"; taken as detections they gave points
     13,000 px off, silently (an animal-pose trial)."""
