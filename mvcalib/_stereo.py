@@ -2,7 +2,8 @@
 
 `stereo_rectify` is OpenCV's `stereoRectify` (Bouguet's method: each camera turned by half the
 rotation between them, then both about the baseline until their image rows, or columns, are
-epipolar lines), `StereoRectification.maps` its `initUndistortRectifyMap`, and
+epipolar lines; for fisheyes `cv2.fisheye.stereoRectify`), `StereoRectification.maps` its
+`initUndistortRectifyMap`, and
 `essential_matrix` / `fundamental_matrix` those of `stereoCalibrate`. They take the pair as a rig
 of two cameras in any common world frame (`calibrate_rig`'s, `Camera.stack` of two), and return
 the rectified cameras in that frame too: `triangulate` and `project` work with them as with any.
@@ -129,7 +130,8 @@ class StereoRectification(eqx.Module):
       rectified camera 0's coordinates, for rectified pixel `(u, v)` of camera 0 and disparity
       `d = u0 - u1` (`v0 - v1` where `vertical`); OpenCV's `reprojectImageTo3D` takes it.
     - `roi`: `(2, 4)` integers, `x, y, width, height` of each rectified image's part where every
-      pixel comes from inside the original image (OpenCV's `validPixROI1`, `validPixROI2`).
+      pixel comes from inside the original image (OpenCV's `validPixROI1`, `validPixROI2`; for
+      fisheyes, which OpenCV gives none, the same rule).
     - `vertical`: whether the cameras are one above the other (the baseline more vertical than
       horizontal in the cameras' rectified frame): then columns are the epipolar lines.
     - `image_size`: `(width, height)` of the images, original and rectified.
@@ -147,9 +149,9 @@ class StereoRectification(eqx.Module):
     def maps(self) -> tuple[Float[Array, "2 H W"], Float[Array, "2 H W"]]:
         """`(map_x, map_y)`, each `(2, height, width)` float32: for every pixel of each rectified
         image, where it lies in the original image (OpenCV's `initUndistortRectifyMap` with
-        `CV_32FC1`). Resample an image `i` with `cv2.remap(image, map_x[i], map_y[i],
-        cv2.INTER_LINEAR)`, or with scikit-image, `skimage.transform.warp(image,
-        np.stack([map_y[i], map_x[i]]), order=1)`.
+        `CV_32FC1`, `cv2.fisheye`'s for fisheyes). Resample an image `i` with
+        `cv2.remap(image, map_x[i], map_y[i], cv2.INTER_LINEAR)`, or with scikit-image,
+        `skimage.transform.warp(image, np.stack([map_y[i], map_x[i]]), order=1)`.
 
         **Example:**
 
@@ -196,6 +198,7 @@ def stereo_rectify(
     *,
     alpha: float | None = None,
     zero_disparity: bool = True,
+    fov_scale: float = 1.0,
 ) -> StereoRectification:
     """Rectify a calibrated pair of cameras, as OpenCV's `stereoRectify` does.
 
@@ -204,19 +207,25 @@ def stereo_rectify(
     then has the same rectified image row in both (column), and its depth follows from the
     disparity (`Q`). Both rectified cameras get one focal length (the mean of the originals'
     vertical ones, horizontal ones for a vertical pair) and principal points that centre the
-    undistorted image corners, as OpenCV computes them; `alpha` then zooms both.
+    undistorted image corners, as OpenCV computes them; `alpha` then zooms both. A fisheye pair
+    is rectified as `cv2.fisheye.stereoRectify` does it (side by side only; one focal length from
+    `estimateNewCameraMatrixForUndistortRectify`'s fit of the edges' midpoints, `alpha` its
+    `balance`, and `fov_scale`), into pinhole cameras: a rectified pinhole image holds less than
+    180 degrees, and `alpha=1` keeps what it can.
 
     **Arguments:**
 
-    - `cameras`: the pair, a pinhole `Camera` rig of two (e.g. `calibrate_rig(...).cameras[[0,
-      1]]`, `Camera.stack([left, right])`), in any common world frame.
+    - `cameras`: the pair, a `Camera` rig of two (e.g. `calibrate_rig(...).cameras[[0, 1]]`,
+      `Camera.stack([left, right])`), pinholes or fisheyes, in any common world frame.
     - `image_size`: `(width, height)` in pixels, of both cameras' images.
     - `alpha`: OpenCV's free scaling: `None` (OpenCV's -1) keeps the focal length above; `0`
       zooms in until every rectified pixel comes from inside the original images (no black
       borders), `1` out until every original pixel is in the rectified images; between, a mix.
+      For fisheyes, OpenCV's `balance` (`None`: 0, its default).
     - `zero_disparity`: OpenCV's `CALIB_ZERO_DISPARITY` (its default): both rectified cameras
       share their principal point, so that points at infinity have zero disparity. `False` moves
       each camera's principal point along the baseline to centre its own view.
+    - `fov_scale`: for fisheyes, OpenCV's: the focal length divided by it (above 1 shows more).
 
     **Returns:** a `StereoRectification`: the rectified cameras, OpenCV's `R1 R2 P1 P2 Q` and
     valid regions, and `maps()` to resample images.
@@ -238,11 +247,6 @@ def stereo_rectify(
     ```
     """
     cameras = _pair(cameras, "stereo_rectify")
-    if cameras.lens != "pinhole":
-        raise ValueError(
-            "`stereo_rectify` rectifies pinhole cameras (with Brown-Conrady distortion); for "
-            "fisheyes, OpenCV's `cv2.fisheye.stereoRectify`."
-        )
     try:
         size = tuple(image_size)
     except TypeError:
@@ -260,12 +264,15 @@ def stereo_rectify(
         raise TypeError(f"`zero_disparity` is True or False; got {zero_disparity!r}.")
     dtype = _dtype(cameras)
     scaling = np.asarray(-1.0 if alpha is None else alpha, dtype)
-    out = _rectify(cameras, np.asarray(size, dtype), scaling, np.asarray(zero_disparity))
+    if not (isinstance(fov_scale, (int, float, np.floating)) and fov_scale > 0):
+        raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
+    fov = np.asarray(fov_scale, dtype)
+    out = _rectify(cameras, np.asarray(size, dtype), scaling, np.asarray(zero_disparity), fov)
     return StereoRectification(*out, image_size=size)
 
 
 @_buckets.eager
-def _rectify(cameras, size, alpha, zero_disparity):
+def _rectify(cameras, size, alpha, zero_disparity, fov_scale):
     # OpenCV's pixel grid: the corner pixels' centres at 0 and size - 1
     last = size - 1
     nx, ny = last[0], last[1]
@@ -277,7 +284,8 @@ def _rectify(cameras, size, alpha, zero_disparity):
     # below 180 degrees); OpenCV's r_r = Rodrigues(-om / 2) = R^(-1/2)
     r_r = nearest_rotation(eye + R).T
     t = r_r @ T
-    vertical = jnp.abs(t[0]) <= jnp.abs(t[1])  # OpenCV's idx == 1
+    fisheye = cameras.lens == "fisheye"  # (static) cv2.fisheye.stereoRectify: side by side only
+    vertical = jnp.asarray(False) if fisheye else jnp.abs(t[0]) <= jnp.abs(t[1])  # OpenCV's idx
     idx = vertical.astype(jnp.int32)
     # then both about the axis t x u by the angle between the baseline t and the axis u it is
     # to lie along (rectified x, or y for a vertical pair; its sign's direction)
@@ -290,14 +298,15 @@ def _rectify(cameras, size, alpha, zero_disparity):
     t = rotations[1] @ T  # the baseline, along rectified x (y where vertical)
     baseline = jnp.where(vertical, t[1], t[0])
 
-    # one focal length (OpenCV: the mean of the originals' vertical ones, horizontal for a
-    # vertical pair) and the principal points that centre the undistorted image corners
-    f = 0.5 * jnp.where(vertical, cameras.alpha_u.sum(), cameras.alpha_v.sum())
-    corners = jnp.stack(
-        [jnp.array([0.0, 0.0]), last * jnp.array([1.0, 0.0]), last * jnp.array([0.0, 1.0]), last]
-    ).astype(dtype)
-    centre = _through(cameras, rotations, corners, f, jnp.zeros((2, 2), dtype)).mean(1)  # (2, 2)
-    c = last / 2 - centre
+    if fisheye:
+        f, c = _fisheye_intrinsics(cameras, rotations, size, alpha, fov_scale)
+    else:
+        # one focal length (OpenCV: the mean of the originals' vertical ones, horizontal for a
+        # vertical pair) and the principal points that centre the undistorted image corners
+        f = 0.5 * jnp.where(vertical, cameras.alpha_u.sum(), cameras.alpha_v.sum())
+        corners = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+        corners = last * jnp.asarray(corners, dtype)
+        c = last / 2 - _through(cameras, rotations, corners, f, jnp.zeros((2, 2), dtype)).mean(1)
     mean = c.mean(0)
     c = jnp.where(
         zero_disparity,
@@ -311,21 +320,23 @@ def _rectify(cameras, size, alpha, zero_disparity):
     v, u = jnp.meshgrid(steps * ny, steps * nx, indexing="ij")
     border = jnp.stack([u.ravel(), v.ravel()], -1)  # row-major, 9 x 9
     xy = _through(cameras, rotations, border, f, c).reshape(2, 9, 9, 2)
+    # (a fisheye's border points beyond 90 degrees of the rectified axis are NaN: they bound
+    # nothing)
     inner = jnp.stack(
         [
-            xy[:, :, 0, 0].max(1),  # left: the first column's largest x
-            xy[:, 0, :, 1].max(1),  # top
-            xy[:, :, -1, 0].min(1),  # right
-            xy[:, -1, :, 1].min(1),  # bottom
+            jnp.nanmax(xy[:, :, 0, 0], 1),  # left: the first column's largest x
+            jnp.nanmax(xy[:, 0, :, 1], 1),  # top
+            jnp.nanmin(xy[:, :, -1, 0], 1),  # right
+            jnp.nanmin(xy[:, -1, :, 1], 1),  # bottom
         ],
         -1,
     )  # (2, 4): x0, y0, x1, y1
     outer = jnp.stack(
         [
-            xy[..., 0].min((1, 2)),
-            xy[..., 1].min((1, 2)),
-            xy[..., 0].max((1, 2)),
-            xy[..., 1].max((1, 2)),
+            jnp.nanmin(xy[..., 0], (1, 2)),
+            jnp.nanmin(xy[..., 1], (1, 2)),
+            jnp.nanmax(xy[..., 0], (1, 2)),
+            jnp.nanmax(xy[..., 1], (1, 2)),
         ],
         -1,
     )
@@ -341,7 +352,7 @@ def _rectify(cameras, size, alpha, zero_disparity):
 
     s0 = zoom(inner, jnp.max)
     s1 = zoom(outer, jnp.min)
-    s = jnp.where(alpha >= 0, s0 * (1 - alpha) + s1 * alpha, 1.0)
+    s = jnp.where(alpha >= 0, s0 * (1 - alpha) + s1 * alpha, 1.0) if not fisheye else 1.0
     f = f * s
 
     zeros = jnp.zeros((2,), dtype)
@@ -377,7 +388,7 @@ def _rectify(cameras, size, alpha, zero_disparity):
     # intersected with the image, as OpenCV's `Rect & Rect`
     x0, y0 = jnp.maximum(roi_x, 0), jnp.maximum(roi_y, 0)
     x1, y1 = jnp.minimum(roi_x + roi_w, size[0]), jnp.minimum(roi_y + roi_h, size[1])
-    empty = (x1 <= x0) | (y1 <= y0)
+    empty = ~(x1 > x0) | ~(y1 > y0)  # (or NaN)
     roi = jnp.where(empty[:, None], 0, jnp.stack([x0, y0, x1 - x0, y1 - y0], -1)).astype(jnp.int32)
 
     rectified = Camera(
@@ -394,9 +405,50 @@ def _rectify(cameras, size, alpha, zero_disparity):
 
 def _through(cameras, rotations, pixels, f, c):
     """Original `pixels` `(M, 2)` of both cameras, undistorted, turned by `rotations` and seen
-    by pinholes of focal length `f` and principal points `c` `(2, 2)`: `(2, M, 2)`."""
-    ideal = undistort_points(cameras, pixels)  # (2, M, 2): the pinholes' pixels with the same K
-    normalised = jnp.stack(cameras._distorted_normalised(ideal), -1)
-    rays = jnp.concatenate([normalised, jnp.ones_like(normalised[..., :1])], -1)
+    by pinholes of focal length `f` and principal points `c` `(2, 2)`: `(2, M, 2)`; NaN where a
+    ray (a fisheye's) turns away from the pinhole."""
+    if cameras.lens == "fisheye":
+        rays = cameras.rays(pixels)  # (2, M, 3)
+    else:
+        ideal = undistort_points(cameras, pixels)  # (2, M, 2): the pinholes' pixels, same K
+        normalised = jnp.stack(cameras._distorted_normalised(ideal), -1)
+        rays = jnp.concatenate([normalised, jnp.ones_like(normalised[..., :1])], -1)
     turned = jnp.einsum("cij,cmj->cmi", rotations, rays)
-    return f * turned[..., :2] / turned[..., 2:] + c[:, None, :]
+    ahead = turned[..., 2:] > 0
+    xy = turned[..., :2] / jnp.where(ahead, turned[..., 2:], 1.0)
+    return jnp.where(ahead, f * xy + c[:, None, :], jnp.nan)
+
+
+def _fisheye_intrinsics(cameras, rotations, size, balance, fov_scale):
+    """The rectified fisheye pair's focal length and principal points `(2, 2)`, as
+    `cv2.fisheye.stereoRectify` makes them: each camera's from
+    `estimateNewCameraMatrixForUndistortRectify` (the midpoints of the image's edges, turned
+    and undistorted, fitted by a focal length between the one that keeps all of them, `balance`
+    1, and the one that fills the image, 0, over `fov_scale`), then the smaller vertical one."""
+    w, h = size[0], size[1]
+    midpoints = jnp.stack(
+        [
+            jnp.stack([jnp.floor(w / 2), 0.0 * h]),
+            jnp.stack([w, jnp.floor(h / 2)]),
+            jnp.stack([jnp.floor(w / 2), h]),
+            jnp.stack([0.0 * w, jnp.floor(h / 2)]),
+        ]
+    )
+    xy = _through(cameras, rotations, midpoints, 1.0, jnp.zeros((2, 2), w.dtype))  # (2, 4, 2)
+    ratio = (cameras.alpha_u / cameras.alpha_v)[:, None]  # (to square pixels, and back)
+    xy = xy.at[..., 1].multiply(ratio)
+    centre = xy.mean(1)  # (2, 2)
+    reach = jnp.stack(
+        [
+            w / 2 / (centre[:, 0] - xy[..., 0].min(1)),
+            w / 2 / (xy[..., 0].max(1) - centre[:, 0]),
+            h / 2 * ratio[:, 0] / (centre[:, 1] - xy[..., 1].min(1)),
+            h / 2 * ratio[:, 0] / (xy[..., 1].max(1) - centre[:, 1]),
+        ]
+    )
+    balance = jnp.clip(jnp.where(balance >= 0, balance, 0.0), 0.0, 1.0)
+    f = balance * reach.min(0) + (1 - balance) * reach.max(0)
+    f = f / jnp.where(fov_scale > 0, fov_scale, 1.0)
+    c = -centre * f[:, None] + jnp.stack([jnp.full((2,), w), h * ratio[:, 0]], -1) / 2
+    c = c.at[:, 1].divide(ratio[:, 0])
+    return jnp.min(f / ratio[:, 0]), c

@@ -65,6 +65,60 @@ def test_stereo_rectify_is_opencvs(seed, vertical):
 
 
 @pytest.mark.parametrize("vertical", [False, True])
+def _fisheye_pair(seed: int):
+    """Two fisheye cameras (about 100 degrees across a 1280 x 720 image) side by side: the
+    cameras and OpenCV's `K`, `D` of each and `R`, `T` between them."""
+    rng = np.random.default_rng(seed)
+    K = [np.array([[500 + rng.normal() * 20, 0, 640 + rng.normal() * 5],
+                   [0, 500 + rng.normal() * 20, 360 + rng.normal() * 5], [0, 0, 1]])
+         for _ in range(2)]  # fmt: skip
+    D = [np.array([0.05, -0.01, 0.002, -0.0005]) + rng.normal(size=4) * 0.005 for _ in range(2)]
+    R0 = cv2.Rodrigues(rng.normal(size=3) * 0.1)[0]
+    R = cv2.Rodrigues(rng.normal(size=3) * 0.05)[0]
+    t0 = rng.normal(size=3) * 0.1
+    T = np.array([-0.12, 0.01, 0.005]) + rng.normal(size=3) * 0.005
+    poses = [(R0, t0), (R @ R0, R @ t0 + T)]
+    cameras = mc.Camera.stack(
+        [mc.Camera.from_matrices(k, r, t, dist=d, lens="fisheye") for k, d, (r, t) in
+         zip(K, D, poses)]
+    )  # fmt: skip
+    return cameras, K, D, R, T
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fisheye_pairs_are_rectified_as_cv2_fisheye_does(seed):
+    """`cv2.fisheye.stereoRectify`'s R1 R2 P1 P2 Q for every `balance` (`alpha`), `fov_scale`
+    and principal-point rule (to 1e-10 px: no float32 inside), and `maps` its
+    `initUndistortRectifyMap`; a point's rectified pixels share their row."""
+    cameras, K, D, R, T = _fisheye_pair(seed)
+    for balance in (None, 0.0, 0.4, 1.0):
+        for fov_scale in (1.0, 1.4):
+            for zero_disparity in (True, False):
+                R1, R2, P1, P2, Q = cv2.fisheye.stereoRectify(
+                    K[0], D[0], K[1], D[1], SIZE, R, T.reshape(3, 1),
+                    flags=cv2.CALIB_ZERO_DISPARITY if zero_disparity else 0,
+                    balance=0.0 if balance is None else balance, fov_scale=fov_scale,
+                )  # fmt: skip
+                rect = mc.stereo_rectify(
+                    cameras, SIZE, alpha=balance, zero_disparity=zero_disparity,
+                    fov_scale=fov_scale,
+                )  # fmt: skip
+                assert np.abs(np.asarray(rect.R) - np.stack([R1, R2])).max() < 1e-12
+                assert np.abs(np.asarray(rect.P) - np.stack([P1, P2])).max() < 1e-10
+                assert np.abs(np.asarray(rect.Q) - Q).max() < 1e-9
+    rect = mc.stereo_rectify(cameras, SIZE)
+    map_x, map_y = rect.maps()
+    for i in range(2):
+        R_i, P_i = np.asarray(rect.R[i]), np.asarray(rect.P[i])
+        cv_x, cv_y = cv2.fisheye.initUndistortRectifyMap(K[i], D[i], R_i, P_i, SIZE, cv2.CV_32FC1)
+        assert np.abs(map_x[i] - cv_x).max() < 1e-3 and np.abs(map_y[i] - cv_y).max() < 1e-3
+    world = np.random.default_rng(0).uniform([-0.5, -0.3, 1.5], [0.5, 0.3, 2.5], (50, 3))
+    rows = np.asarray(rect.cameras.project(world))[..., 1]
+    assert np.abs(rows[0] - rows[1]).max() < 1e-9
+    assert (np.asarray(rect.roi)[:, 2:] > 0).all()
+
+
+@pytest.mark.parametrize("vertical", [False, True])
 def test_rectified_cameras_share_rows_and_Q_gives_depth(vertical):
     """A world point's rectified pixels share their row (column, one above the other); `Q` of
     its pixel and disparity is the point in rectified camera 0's coordinates; the rectified
@@ -191,6 +245,6 @@ def test_bad_input_is_refused_with_the_reason():
         ]
     )
     with pytest.raises(ValueError, match="fisheye"):
-        mc.stereo_rectify(fisheye, SIZE)
-    with pytest.raises(ValueError, match="fisheye"):
         mc.fundamental_matrix(fisheye)
+    with pytest.raises(ValueError, match="fov_scale"):
+        mc.stereo_rectify(fisheye, SIZE, fov_scale=0.0)
