@@ -35,6 +35,7 @@ from ._refine import (
     _scales,
     _skew_model,
     _unpack,
+    refuse_tied,
     takes_model,
 )
 from ._registration import RigidTransform
@@ -239,6 +240,7 @@ def refine_rig(
     # A call from Python with concrete arrays pads the rig to its bucket (`_padded`).
     bucketed = host and _buckets.applies(cameras, world, pixels, mask, transform)
     free = _free_parameters(distortion, fix, skew, cameras.lens)
+    refuse_tied(free, "refine_rig")
     shared = bool(shared_intrinsics)
     cam_free = tuple(i for i in free if not (shared and i not in POSE_INDICES))
     shared_free = tuple(i for i in free if shared and i not in POSE_INDICES)

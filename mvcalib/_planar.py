@@ -40,6 +40,7 @@ from ._refine import (
     check_loss,
     default_solver,
     parameter_names,
+    refuse_tied,
     takes_model,
 )
 from ._registration import RigidTransform
@@ -617,7 +618,9 @@ def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, loss, max_steps
 
 def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
     names = parameter_names(lens)
-    free = {names[i] for i in _free_parameters(distortion, fix, skew, lens)}
+    free = _free_parameters(distortion, fix, skew, lens)
+    refuse_tied(free, "calibrate_planar")
+    free = {names[i] for i in free}
     mask = lambda names: np.asarray([n in free for n in names], dtype)  # noqa: E731
     return mask(tuple(n for n in names if n not in POSE)), mask(POSE)
 

@@ -70,6 +70,7 @@ from ._refine import (
     _unpack,
     check_loss,
     parameter_names,
+    refuse_tied,
     residual_variance,
 )
 from ._registration import RigidTransform
@@ -1452,6 +1453,7 @@ def calibrate_rig(
         cameras = _fisheye_start(target, pixels, mask, image_size, loss)
     names = parameter_names(lens)
     free = _free_parameters(distortion, fix, skew, lens)
+    refuse_tied(free, "calibrate_rig")
     fixed = set(names) - {names[i] for i in free}
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:
