@@ -67,6 +67,7 @@ from ._refine import (
     _pixel_columns,
     _robust_residuals,
     _skew_model,
+    _tied_columns,
     _unpack,
     check_loss,
     parameter_names,
@@ -717,6 +718,7 @@ def _block_rows(yc, yf, cam, frame, data, free, loss):
     tf = t0f + yf[3:] * move_f * distance
     world = jnp.stack([m[i] + tf[i] for i in range(3)], -1)
     columns, dworld = _pixel_columns(p, R0, world, mask)
+    columns = _tied_columns(columns, p0, free)  # (alpha_u following alpha_v: `Free`)
     rows = [columns[k] for k in free]
     # the frame's rotation increments: d(u, v) / d w_k = g . ((Jw e_k) x m) = (Jw e_k) . (m x g)
     Jw = [[row[k] for row in Jw] for k in range(3)]  # its columns
