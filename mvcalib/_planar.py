@@ -805,11 +805,12 @@ def calibrate_planar(
       the closed form's K, to 2e-10. The closed form neglects the distortion, and its ratio
       carries that error (the tests' barrel lens, `k1 = -0.25`: 1.6 % off, 0.62 px RMS against
       the free focal lengths' 0.42). Without a guess OpenCV holds its own start's ratio, 1.
-      To start from known intrinsics, or hold them at given values (OpenCV's
-      `CALIB_USE_INTRINSIC_GUESS` with `CALIB_FIX_*`), calibrate a rig of this one camera:
-      `mc.calibrate_rig(world, pixels[None], mask[None], cameras=camera_with_a_camera_axis,
-      fix="principal_point")` (a fisheye's principal point held at a given value: its focal
-      lengths within 0.1 % of the truth, as here).
+      To start from known intrinsics, or hold them (or their ratio, e.g. 1, with
+      `fix="aspect_ratio"`) at given values (OpenCV's `CALIB_USE_INTRINSIC_GUESS` with
+      `CALIB_FIX_*`), calibrate a rig of this one camera: `mc.calibrate_rig(world,
+      pixels[None], mask[None], cameras=camera_with_a_camera_axis, fix="principal_point")` (a
+      fisheye's principal point held at a given value: its focal lengths within 0.1 % of the
+      truth, as here; a ratio of 1 held: OpenCV's `CALIB_FIX_ASPECT_RATIO` without a guess).
     - `solver`: an optimistix least-squares solver for step 4, which then solves the problem
       whole (its Jacobian of every view's pose materialised: 0.6 s for 40 views); default
       step 4's own (also where a view's pose is held by `fix`).

@@ -433,6 +433,33 @@ def test_fix_aspect_ratio_holds_the_closed_forms_ratio_as_opencv_holds_its_guess
     assert relative(np.asarray(out.K), K_TRUE) < 1e-9 and float(out.rms) < 1e-6
 
 
+def test_opencvs_aspect_ratio_of_one_is_a_rig_of_one_camera_started_at_one(noisy):
+    """OpenCV's CALIB_FIX_ASPECT_RATIO without a guess holds its own start's ratio, 1: the same
+    camera as `calibrate_rig` of this one camera started from a ratio of 1."""
+    cv2 = pytest.importorskip("cv2")
+    import equinox as eqx
+
+    pixels, mask, _ = noisy
+    pixels = pixels.astype(np.float32).astype(np.float64)  # what OpenCV sees
+    closed = mc.calibrate_planar(WORLD, pixels, mask, refine=False).camera[:1]
+    start = eqx.tree_at(lambda c: c.alpha_u, closed, closed.alpha_v)
+    out = mc.calibrate_rig(WORLD, pixels[None], mask[None], cameras=start, fix="aspect_ratio",
+                           distortion=("k1", "k2"))  # fmt: skip
+    assert bool(out.ok.all()) and bool(out.converged)
+    objects = [WORLD[m].astype(np.float32) for m in mask]
+    images = [pixels[i][m].astype(np.float32) for i, m in enumerate(mask)]
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_ASPECT_RATIO
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    rms, K, dist, _, _ = cv2.calibrateCamera(objects, images, IMAGE, None, None, flags=flags,
+                                             criteria=criteria)  # fmt: skip
+    assert K[0, 0] == K[1, 1]
+    ours = np.asarray(out.cameras.K[0])
+    assert ours[0, 0] == ours[1, 1] and abs(ours[1, 1] / float(closed.alpha_v[0]) - 1) > 1e-4
+    np.testing.assert_allclose(ours, K, rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(out.cameras.dist[0]), dist.ravel(), atol=1e-8)
+    assert abs(float(out.rms) / rms - 1) < 1e-9
+
+
 # ------------------------------------------------------------------------------ Zhang's data
 def load_zhang():
     root = data_dir("zhang1998")
