@@ -1006,13 +1006,6 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> Free:
     return Free((i for i, name in enumerate(names) if name not in fixed), tied=tied)
 
 
-def refuse_tied(free, caller: str):
-    """Raise where `free` ties alpha_u to alpha_v (`fix="aspect_ratio"`) for a `caller` that does
-    not take that constraint."""
-    if getattr(free, "tied", False):
-        raise ValueError(f'`fix="aspect_ratio"` is not supported by `{caller}`.')
-
-
 def _skew_model(cameras: Camera, skew: bool, fix, xp=jnp) -> Camera:
     """The seed of a zero-skew model (`skew=False`, the default: OpenCV's model) has zero skew:
     a seed with another value (the DLT's, noisy) has it set to zero, not held, unless `fix` names
