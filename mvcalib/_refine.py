@@ -437,7 +437,9 @@ class Refinement(eqx.Module):
     - `inliers`: `(..., N)` visible points whose final residual is within 3 `loss.scale` (all
       visible points without a robust loss).
     - `covariance`: `(..., P, P)` covariance of the parameters named in `parameter_names` (the
-      free ones), from the Jacobian at the optimum scaled by the residual variance (with a
+      free ones, and alpha_u where `fix="aspect_ratio"` ties it to alpha_v: alpha_v's row and
+      column times the ratio, so that the matrix is singular), from the Jacobian at the optimum
+      scaled by the residual variance (with a
       robust loss, Huber's M-estimate of it, which the wild points' bounded pull enters and
       their size does not: `residual_variance`).
     - `standard_errors`: `(..., P)` square roots of its diagonal; `std(name)` picks one.
@@ -691,7 +693,8 @@ class Free(tuple):
     (`fix="aspect_ratio"`, OpenCV's CALIB_FIX_ASPECT_RATIO). Tied, alpha_u is no parameter of its
     own: `_parameters` sets it to `ratio * alpha_v`, `ratio = alpha_u / alpha_v` of the seed
     `p0`, and alpha_v's Jacobian column is `d/d alpha_v + ratio d/d alpha_u` (`_tied_columns`),
-    the chain rule. Equal only to a `Free` tied alike (a compiled program's key)."""
+    the chain rule. Untied it equals (and hashes as) its tuple; tied, only a `Free` tied alike
+    (a compiled program's key)."""
 
     tied: bool
 
@@ -701,13 +704,16 @@ class Free(tuple):
         return out
 
     def __eq__(self, other):
+        if not isinstance(other, tuple):
+            return NotImplemented
         return tuple(self) == tuple(other) and self.tied == getattr(other, "tied", False)
 
     def __ne__(self, other):
-        return not self == other
+        equal = self.__eq__(other)
+        return equal if equal is NotImplemented else not equal
 
     def __hash__(self):
-        return hash((tuple(self), self.tied))
+        return hash((tuple(self), True)) if self.tied else hash(tuple(self))
 
     def __repr__(self):
         return f"Free({tuple(self)!r}, tied={self.tied})"

@@ -311,6 +311,11 @@ def test_fix_aspect_ratio_agrees_with_opencv():
         np.testing.assert_allclose(float(ours.alpha_u), K_cv[0, 0], rtol=1e-6)
         np.testing.assert_allclose(float(ours.alpha_v), K_cv[1, 1], rtol=1e-6)
         assert abs(float(out.rms_after[i]) / rms_cv - 1) < 1e-6, (i, out.rms_after[i], rms_cv)
+    # alpha_u held alone is another problem (the same free indices, untied: no program shared)
+    alone = mc.refine(seed, world, pixels, mask, fix="alpha_u")
+    np.testing.assert_array_equal(alone.cameras.alpha_u, seed.alpha_u)
+    moved = np.asarray(alone.cameras.alpha_u / alone.cameras.alpha_v) / ratio - 1
+    assert np.abs(moved).min() > 1e-9
     # either focal length held holds both
     held = mc.refine(seed, world, pixels, mask, fix=("aspect_ratio", "alpha_v"))
     np.testing.assert_array_equal(held.cameras.alpha_u, seed.alpha_u)
