@@ -30,6 +30,7 @@ from ._refine import (
     _free_parameters,
     _irls,
     _pack,
+    _ratio,
     _robust_model,
     _robust_residuals,
     _scales,
@@ -94,14 +95,20 @@ class RigRefinement(eqx.Module):
         return message
 
 
-def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0):
+def _tied(p, p0, tie):
+    """The packed parameters `p (..., P)` with alpha_u the seed's (`p0`) ratio times alpha_v
+    where `tie` (`fix="aspect_ratio"`, `_refine.Free`; its Jacobian here by autodiff)."""
+    return jnp.where(tie, p.at[..., 0].set(_ratio(p0) * p[..., 1]), p)
+
+
+def _unknowns(y, p0, R0, scale, free, shared_free, T0, world0, tie):
     """Cameras, placement and points from the parameter increments `y` (a dict holding only
     what is estimated: "cams", and where free "shared", "T", "X")."""
     p = p0.at[:, free].add(y["cams"] * scale[:, free])
     if "shared" in y:
         # one set of intrinsics for every camera: the shared increment, in camera 0's units
         p = p.at[:, shared_free].add(y["shared"] * scale[0, shared_free])
-    cams = jax.vmap(_unpack)(p, R0)
+    cams = jax.vmap(_unpack)(_tied(p, p0, tie), R0)
     T = T0
     if "T" in y:
         T = RigidTransform(rodrigues(y["T"][:3]) @ T0.R, T0.t + y["T"][3:] * scale[0, _DISTANCE])
@@ -126,9 +133,9 @@ def _model(y, args):
 
 
 def _unweighted(y, args):
-    (p0, R0, scale, free, shared_free, T0, world0, pixels, mask, anchors, loss, pinned) = args
+    (p0, R0, scale, free, shared_free, T0, world0, pixels, mask, anchors, loss, pinned, tie) = args
     anchor_ids, anchor_xyz, anchor_sigma = anchors
-    cams, T, world = _unknowns(y, p0, R0, scale, free, shared_free, T0, world0)
+    cams, T, world = _unknowns(y, p0, R0, scale, free, shared_free, T0, world0, tie)
     placed = T.apply(world)
     r = cams.project(placed) - pixels
     out = {"pixels": jnp.where(mask[..., None], r, 0.0)}
@@ -188,7 +195,8 @@ def refine_rig(
     - `points`: `"fixed"` (a known target) or `"free"` (bundle adjustment of the points).
     - `shared_intrinsics`: one set of intrinsics and distortion for all cameras (one physical
       camera seen in several snapshots); the seed is camera 0's.
-    - `distortion`, `fix`, `skew`, `loss`: as for `refine`.
+    - `distortion`, `fix`, `skew`, `loss`: as for `refine` (`fix="aspect_ratio"` holds each
+      seed's ratio; with `shared_intrinsics`, that of the seed, camera 0's).
     - `solver`: an optimistix least-squares solver; default `default_solver`'s choice for the
       problem's size and dtype (bundle adjustment: the points eliminated from each step).
     - `max_steps`: the solver's limit; `ok` is False where it was reached.
@@ -273,7 +281,7 @@ def refine_rig(
         None if anchor_ids is None else (anchor_ids, anchor_xyz, np.asarray(anchor_sigma, dtype))
     )
     out = _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver,
-                      unknowns=unknowns(*mask.shape), free=(cam_free, shared_free),
+                      unknowns=unknowns(*mask.shape), free=(cam_free, shared_free, free.tied),
                       shared=shared, skew=skew, fix=fix, max_steps=max_steps,
                       quick=mask.size <= QUICK_SIZE)  # fmt: skip
     if not bucketed:
@@ -311,7 +319,7 @@ def _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver, 
     """`refine_rig` after its checks, as one program: compiled once for every shape of rig (its
     steps one by one from Python compiled a program each, ~100 of them: 3 s of a first call)."""
     dtype = world.dtype
-    cam_free, shared_free = free
+    cam_free, shared_free, tied = free
     transform = RigidTransform.identity(dtype) if transform is None else transform
     cameras = _skew_model(cameras, skew, fix)
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
@@ -327,11 +335,12 @@ def _refine_rig(cameras, world, pixels, mask, transform, anchors, loss, solver, 
     anchors_arg = (None, None, jnp.ones((), dtype)) if anchors is None else anchors
     free_idx = jnp.asarray(cam_free, dtype=int)
     shared_idx = jnp.asarray(shared_free, dtype=int)
+    tie = jnp.asarray(tied)  # (alpha_u following alpha_v: `_tied`)
     args = (p0, cameras.R, scale, free_idx, shared_idx, transform, world, pixels, mask,
-            anchors_arg, loss, ~jnp.any(mask, axis=1))  # fmt: skip
+            anchors_arg, loss, ~jnp.any(mask, axis=1), tie)  # fmt: skip
     sol = _solve(_residuals, args, y0, solver, max_steps)
     refined, placement, new_world = _unknowns(
-        sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world
+        sol.value, p0, cameras.R, scale, free_idx, shared_idx, transform, world, tie
     )
     nan = jnp.asarray(jnp.nan, dtype)
     seen = used & jnp.any(mask, axis=1)  # (an RMS of no observations is none, not 0 px)
@@ -631,7 +640,7 @@ def _solve_eliminating_points(fn, args, y0, solver, max_steps) -> _Solved:
     each point's 3 x 3 block eliminated, so that a step costs the reduced camera system (C P
     unknowns) and grows linearly with the points, where the dense step (all of `J^T J`) grew
     with their cube: the mouse rig's 12 cameras, 365 points, 0.47 s a step."""
-    (_, _, _, _, _, _, _, pixels, mask, anchors, _, pinned) = args
+    (_, _, _, _, _, _, _, pixels, mask, anchors, _, pinned, _) = args
     dtype = pixels.dtype
     n_anchor = 0 if anchors[0] is None else len(anchors[0])
     options = {
@@ -655,12 +664,12 @@ def _bundle_normal(y, args) -> _Normal:
     mode, weighted for Gauss–Newton's model of a robust cost (`_irls`); the anchors' residuals
     in their points' blocks; the pins of cameras that see nothing, and of points nobody sees,
     as identities."""
-    (p0, R0, scale, free, _, T0, world0, pixels, mask, anchors, loss, pinned) = args
+    (p0, R0, scale, free, _, T0, world0, pixels, mask, anchors, loss, pinned, tie) = args
     anchor_ids, anchor_xyz, anchor_sigma = anchors
     unit = scale[0, _DISTANCE] * 1e-3  # the points' increments' (`_unknowns`)
 
     def observation(yc, x, p0, R0, scale, x0, px):
-        p = p0.at[free].add(yc * scale[free])
+        p = _tied(p0.at[free].add(yc * scale[free]), p0, tie)
         r = _unpack(p, R0).project(T0.apply((x0 + x * unit)[None]))[0] - px
         return r, r
 

@@ -33,8 +33,10 @@ from ._refine import (
     _RESULT_MESSAGES,
     GROUPS,
     Cauchy,
+    Free,
     Huber,
     _free_parameters,
+    _ratio,
     _robust_model,
     _robust_residuals,
     check_loss,
@@ -519,8 +521,9 @@ def _nan_where(failed, camera: Camera) -> Camera:
 # choice of free parameters is data (a 0/1 mask on the increments), not shape: Zhang's model with
 # skew and OpenCV's without, any `distortion` or `fix`, share one compilation.
 def _planar_unknowns(y, args):
-    p0, R0, t0, scale, distance, free_shared, free_pose = args[:7]
+    p0, R0, t0, scale, distance, free_shared, free_pose, tie = args[:8]
     p = p0 + y["shared"] * scale * free_shared
+    p = p.at[0].add(tie * (_ratio(p0) * p[1] - p[0]))  # alpha_u following alpha_v (`Free`)
     w = y["views"][:, :3] * free_pose[:3]  # axis-angle increments on the seed's rotations
     dt = y["views"][:, 3:] * free_pose[3:] * distance[:, None]
     R, t = rodrigues(w) @ R0, t0 + dt
@@ -537,13 +540,14 @@ def _planar_model(y, args):
 
 
 def _planar_unweighted(y, args):
-    world, pixels, mask, _ = args[7:]
+    world, pixels, mask, _ = args[8:]
     r = _planar_unknowns(y, args).project(world) - pixels
     return jnp.where(mask[..., None], r, 0.0)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss, solver, max_steps):
+def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, tied, loss, solver,
+                  max_steps):  # fmt: skip
     """Refine the closed-form rig. Views that failed (`~ok`) get a harmless seed and no points
     (`_finish` puts NaN in their place). (Until 2026-12-05 a redescending loss, `Cauchy`,
     started from the answer of `Huber` of its scale; with Ceres' model of the steps it needs no
@@ -556,7 +560,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     )
     mask = mask & ok[:, None]
     if solver is None:  # the default: the views' poses eliminated from every step
-        return _refine_as_rig(camera, ok, world, pixels, mask, free_shared, loss, max_steps)
+        return _refine_as_rig(camera, ok, world, pixels, mask, free_shared, tied, loss, max_steps)
     first = camera[0]  # the intrinsics are every view's
     p0 = jnp.concatenate(
         [jnp.stack([first.alpha_u, first.alpha_v, first.u0, first.v0, first.skew]), first.dist]
@@ -566,7 +570,8 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     scale = jnp.concatenate([jnp.full(5, f), jnp.ones(len(p0) - 5, p0.dtype)])
     distance = jnp.linalg.norm(camera.t, axis=-1)
     pixels = jnp.where(mask[..., None], pixels, 0.0)
-    args = (p0, camera.R, camera.t, scale, distance, free_shared, free_pose,
+    tie = jnp.asarray(float(tied), p0.dtype)
+    args = (p0, camera.R, camera.t, scale, distance, free_shared, free_pose, tie,
             world, pixels, mask, loss)  # fmt: skip
     y0 = {"shared": jnp.zeros_like(p0), "views": jnp.zeros((len(distance), 6), p0.dtype)}
     # The fixed parameters are zero columns of the Jacobian, so the implicit derivative's linear
@@ -586,7 +591,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, loss,
     return _planar_unknowns(sol.value, args), steps, sol.result._value  # noqa: SLF001
 
 
-def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, loss, max_steps):
+def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, tied, loss, max_steps):
     """`_refine_views` by `calibrate_rig`'s solver (`_rig._refine`): the camera at the origin and
     its views the frames of a rig of one camera, whose poses every step eliminates (Schur
     complement), so that a step costs in proportion to the views rather than to their square.
@@ -599,7 +604,8 @@ def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, loss, max_steps
 
     dtype = pixels.dtype
     names = parameter_names(camera.lens)
-    free = tuple(range(len(names)))  # every parameter; `movable` says which move
+    # every parameter (`movable` says which move), alpha_u following alpha_v where `tied`
+    free = Free(range(len(names)), tied=tied)
     shared = np.flatnonzero([n not in POSE for n in names])
     movable = jnp.zeros(len(names), dtype).at[shared].set(free_shared)[None]
     eye = jnp.eye(3, dtype=dtype)
@@ -620,10 +626,13 @@ def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, loss, max_steps
 
 
 def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
+    """0/1 masks of the free shared parameters and pose parameters, and whether alpha_u follows
+    alpha_v (`Free.tied`; alpha_u's mask is then 0)."""
     names = parameter_names(lens)
-    free = {names[i] for i in _free_parameters(distortion, fix, skew, lens)}
+    free = _free_parameters(distortion, fix, skew, lens)
+    tied, free = free.tied, {names[i] for i in free}
     mask = lambda names: np.asarray([n in free for n in names], dtype)  # noqa: E731
-    return mask(tuple(n for n in names if n not in POSE)), mask(POSE)
+    return mask(tuple(n for n in names if n not in POSE)), mask(POSE), tied
 
 
 # A view is left out (POOR_FIT) where its RMS exceeds `max_relative_rms` of its pixels' spread and
@@ -793,11 +802,19 @@ def calibrate_planar(
       `loss=mc.Huber(1.0)`); `fix` names from `("alpha_u", "alpha_v", "u0", "v0", "skew",
       "k1", "k2", "p1", "p2", "k3")` and `"rotation"`, `"translation"`, `"pose"` (for every
       view) or their groups. A fixed parameter is held at the closed form's value (a
-      fisheye's principal point: the image centre). To start from known intrinsics, or hold
-      them at given values (OpenCV's `CALIB_USE_INTRINSIC_GUESS` with `CALIB_FIX_*`), calibrate
-      a rig of this one camera: `mc.calibrate_rig(world, pixels[None], mask[None],
-      cameras=camera_with_a_camera_axis, fix="principal_point")` (a fisheye's principal point
-      held at a given value: its focal lengths within 0.1 % of the truth, as here).
+      fisheye's principal point: the image centre). `"aspect_ratio"` holds `alpha_u / alpha_v`
+      at the closed form's ratio (`closed_form.alpha_u / closed_form.alpha_v`: Zhang's K's, or
+      1 where the camera starts from one focal length, as a fisheye always does) and estimates
+      the focal length: OpenCV's `CALIB_FIX_ASPECT_RATIO` with `CALIB_USE_INTRINSIC_GUESS` from
+      the closed form's K, to 2e-10. The closed form neglects the distortion, and its ratio
+      carries that error (the tests' barrel lens, `k1 = -0.25`: 1.6 % off, 0.62 px RMS against
+      the free focal lengths' 0.42). Without a guess OpenCV holds its own start's ratio, 1.
+      To start from known intrinsics, or hold them (or their ratio, e.g. 1, with
+      `fix="aspect_ratio"`) at given values (OpenCV's `CALIB_USE_INTRINSIC_GUESS` with
+      `CALIB_FIX_*`), calibrate a rig of this one camera: `mc.calibrate_rig(world,
+      pixels[None], mask[None], cameras=camera_with_a_camera_axis, fix="principal_point")` (a
+      fisheye's principal point held at a given value: its focal lengths within 0.1 % of the
+      truth, as here; a ratio of 1 held: OpenCV's `CALIB_FIX_ASPECT_RATIO` without a guess).
     - `solver`: an optimistix least-squares solver for step 4, which then solves the problem
       whole (its Jacobian of every view's pose materialised: 0.6 s for 40 views); default
       step 4's own (also where a view's pose is held by `fix`).
@@ -877,7 +894,7 @@ def calibrate_planar(
         plane = RigidTransform.identity(dtype)  # traced: the user's z = 0 plane is assumed
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
-    free_shared, free_pose = _free_masks(distortion, fix, skew, dtype, lens)  # checks the names
+    free_shared, free_pose, tied = _free_masks(distortion, fix, skew, dtype, lens)  # checks names
     check_loss(loss)
     skew = np.asarray(bool(skew))
     V = pixels.shape[0]
@@ -887,7 +904,7 @@ def calibrate_planar(
     quick = math.prod(mask.shape) <= _buckets.COMPACT  # a small program compiles quickly
     if solver is None and not np.all(free_pose):  # (poses held: the dense step's mask)
         solver = default_solver(dtype)
-    refine_options = (free_shared, free_pose, loss, solver, int(max_steps))
+    refine_options = (free_shared, free_pose, tied, loss, solver, int(max_steps))
     closed_form = functools.partial(_closed_form, world, plane, pixels, skew=skew, rcond=rcond,
                                     quick=quick)  # fmt: skip
     max_relative_rms = check_relative_rms(max_relative_rms)

@@ -44,6 +44,9 @@ GROUPS = {
     "distortion": LENSES["pinhole"],  # (a fisheye's: its own, `_free_parameters`)
 }
 DISTORTION = LENSES["pinhole"]
+# `fix`'s constraint rather than parameters: alpha_u / alpha_v held at the seed's ratio
+# (OpenCV's CALIB_FIX_ASPECT_RATIO), the focal length estimated (`Free`)
+CONSTRAINTS = ("aspect_ratio",)
 # Where the pose sits in the packed parameters (the same for either lens; the rest are the
 # intrinsics with the distortion).
 POSE_INDICES = tuple(PARAMETERS.index(n) for n in GROUPS["pose"])
@@ -434,7 +437,9 @@ class Refinement(eqx.Module):
     - `inliers`: `(..., N)` visible points whose final residual is within 3 `loss.scale` (all
       visible points without a robust loss).
     - `covariance`: `(..., P, P)` covariance of the parameters named in `parameter_names` (the
-      free ones), from the Jacobian at the optimum scaled by the residual variance (with a
+      free ones, and alpha_u where `fix="aspect_ratio"` ties it to alpha_v: alpha_v's row and
+      column times the ratio, so that the matrix is singular), from the Jacobian at the optimum
+      scaled by the residual variance (with a
       robust loss, Huber's M-estimate of it, which the wild points' bounded pull enters and
       their size does not: `residual_variance`).
     - `standard_errors`: `(..., P)` square roots of its diagonal; `std(name)` picks one.
@@ -682,11 +687,88 @@ def _scales(p0):
     return jnp.stack([f] * 5 + [one] * 3 + [d] * 3 + [one] * (p0.shape[0] - 11))
 
 
+class Free(tuple):
+    """Indices into `parameter_names(lens)` of the parameters a solve estimates (a tuple, as
+    static as one), and whether alpha_u is `tied` to alpha_v at the seed's ratio
+    (`fix="aspect_ratio"`, OpenCV's CALIB_FIX_ASPECT_RATIO). Tied, alpha_u is no parameter of its
+    own: `_parameters` sets it to `ratio * alpha_v`, `ratio = alpha_u / alpha_v` of the seed
+    `p0`, and alpha_v's Jacobian column is `d/d alpha_v + ratio d/d alpha_u` (`_tied_columns`),
+    the chain rule. Untied it equals (and hashes as) its tuple; tied, only a `Free` tied alike
+    (a compiled program's key)."""
+
+    tied: bool
+
+    def __new__(cls, indices=(), tied: bool = False):
+        out = super().__new__(cls, indices)
+        out.tied = bool(tied)
+        return out
+
+    def __eq__(self, other):
+        if not isinstance(other, tuple):
+            return NotImplemented
+        return tuple(self) == tuple(other) and self.tied == getattr(other, "tied", False)
+
+    def __ne__(self, other):
+        equal = self.__eq__(other)
+        return equal if equal is NotImplemented else not equal
+
+    def __hash__(self):
+        return hash((tuple(self), True)) if self.tied else hash(tuple(self))
+
+    def __repr__(self):
+        return f"Free({tuple(self)!r}, tied={self.tied})"
+
+    def __reduce__(self):
+        return Free, (tuple(self), self.tied)
+
+    @property
+    def reported(self) -> tuple[int, ...]:
+        """The parameters whose covariance a result reports: the free ones, and alpha_u where it
+        is tied to alpha_v (`reported_covariance`)."""
+        return tuple(sorted({*self, 0})) if self.tied else tuple(self)
+
+
+def _ratio(p0):
+    """The seed's aspect ratio alpha_u / alpha_v of packed parameters `(..., P)`."""
+    return p0[..., 0] / p0[..., 1]
+
+
 def _parameters(y, p0, scale, free):
     """The packed parameters: the seed's, with the increments `y` (natural units) on the `free`
-    entries (a tuple), by a one-hot product rather than a scatter (cheaper under jacfwd's vmap)."""
+    entries (a tuple), by a one-hot product rather than a scatter (cheaper under jacfwd's vmap);
+    alpha_u the seed's ratio times alpha_v where `free.tied` (`Free`)."""
     one_hot = jax.nn.one_hot(jnp.asarray(free), p0.shape[0], dtype=y.dtype)
-    return p0 + (y @ one_hot) * scale
+    p = p0 + (y @ one_hot) * scale
+    if getattr(free, "tied", False):
+        first = jax.nn.one_hot(0, p0.shape[0], dtype=p.dtype)
+        p = p + first * (_ratio(p0) * p[1] - p[0])
+    return p
+
+
+def _tied_columns(columns, p0, free):
+    """`_pixel_columns`' columns `d(u, v) / d p_k` as the free parameters see them: where
+    `free.tied`, alpha_u follows alpha_v (`Free`), so that alpha_v's column takes alpha_u's times
+    the seed's ratio, and alpha_u's, which moves nothing, is zero."""
+    if not getattr(free, "tied", False):
+        return columns
+    ratio = _ratio(p0)
+    both = tuple(a + ratio * b for a, b in zip(columns[1], columns[0]))
+    return [tuple(jnp.zeros_like(d) for d in columns[0]), both, *columns[2:]]
+
+
+def reported_covariance(cov, free, p0):
+    """The covariance `(..., R, R)` of the reported parameters (`Free.reported`) from that of the
+    free ones `cov (..., P, P)`: itself, or where alpha_u is tied to alpha_v, with alpha_u's row
+    and column first, alpha_v's times the seed's ratio (`p0 (..., P)`): `A cov A^T`."""
+    if not getattr(free, "tied", False):
+        return cov
+    v = free.index(1)  # alpha_v's
+    rows = [jax.nn.one_hot(v, len(free), dtype=cov.dtype)]
+    rows += [jax.nn.one_hot(i, len(free), dtype=cov.dtype) for i in range(len(free))]
+    A = jnp.stack(rows)
+    ratio = _ratio(p0)[..., None, None]
+    A = jnp.where((jnp.arange(len(rows)) == 0)[:, None], ratio * A, A)  # (..., R, P)
+    return A @ cov @ jnp.swapaxes(A, -1, -2)
 
 
 # (Both are traced once and called where needed: the solver evaluates them in its loop and
@@ -725,7 +807,7 @@ def _residual_jacobian_t(y, args, free, irls=False):
     `irls`, the rows of `_model`'s residuals instead (the pixels' rows scaled by `sqrt(rho')`)."""
     p0, R0, scale, world, pixels, mask, loss = args
     p = _parameters(y, p0, scale, free)
-    columns = _pixel_columns(p, R0, world)[0]
+    columns = _tied_columns(_pixel_columns(p, R0, world)[0], p0, free)
     rows = [[jnp.where(mask, d, 0.0) * scale[k] for d in columns[k]] for k in free]
     if loss is not None:
         r = jnp.where(mask[:, None], _pixels(p, R0, world) - pixels, 0.0)
@@ -782,6 +864,7 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     sigma2 = residual_variance(raw, mask, loss, len(free))
     H = Jt @ Jt.T
     cov = sigma2 * _definite_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))
+    cov = reported_covariance(cov, free, p0)  # (alpha_u's too where it is tied)
 
     residual_length = jnp.linalg.norm(raw, axis=-1)
     threshold = jnp.inf if loss is None else 3.0 * loss.scale
@@ -882,12 +965,17 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 
-def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int, ...]:
-    """Indices into `parameter_names(lens)` of the parameters to estimate. `distortion=None` is
-    the lens's `DEFAULT_DISTORTION`."""
+def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> Free:
+    """Indices into `parameter_names(lens)` of the parameters to estimate (a `Free`, tied where
+    `fix` names `"aspect_ratio"` and the focal lengths are not held: either one held holds both).
+    `distortion=None` is the lens's `DEFAULT_DISTORTION`."""
     names = parameter_names(lens)
     coefficients = LENSES[lens]
     groups = {**GROUPS, "distortion": coefficients}
+    given, constrained = ((fix,) if isinstance(fix, str) else fix), ()
+    if isinstance(given, (tuple, list, set, frozenset)):
+        constrained = tuple(n for n in given if n in CONSTRAINTS)
+        fix = tuple(n for n in given if n not in CONSTRAINTS)
 
     def expand(given, what):
         if isinstance(given, str):
@@ -907,9 +995,10 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int,
             elif name in names:
                 out.append(name)
             else:
+                groups_named = tuple(offered[1]) + (CONSTRAINTS if what == "fix" else ())
                 raise ValueError(
                     f"unknown parameter {name!r} in `{what}` of a {lens} camera; use any of "
-                    f"{offered[0]} or the groups {tuple(offered[1])}."
+                    f"{offered[0]} or the groups {groups_named}."
                 )
         return set(out)
 
@@ -923,7 +1012,11 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> tuple[int,
         )
     fixed = expand(fix, "fix") | (set() if skew else {"skew"})
     fixed |= set(coefficients) - estimated
-    return tuple(i for i, name in enumerate(names) if name not in fixed)
+    focal = set(GROUPS["focal"])
+    tied = bool(constrained) and not fixed & focal
+    if constrained:  # alpha_u follows alpha_v (`Free`), or both are held
+        fixed |= {"alpha_u"} if tied else focal
+    return Free((i for i, name in enumerate(names) if name not in fixed), tied=tied)
 
 
 def _skew_model(cameras: Camera, skew: bool, fix, xp=jnp) -> Camera:
@@ -987,7 +1080,11 @@ def refine(
       focal lengths 0.42 % off with `()`, 0.73 % with the default, median of 200 cameras), and
       the fitted distortion holds only where the points are.
     - `fix`: parameters held at the seed's values: names from `PARAMETERS`, or the groups
-      `"focal"`, `"principal_point"`, `"intrinsics"`, `"rotation"`, `"translation"`, `"pose"`.
+      `"focal"`, `"principal_point"`, `"intrinsics"`, `"rotation"`, `"translation"`, `"pose"`;
+      and `"aspect_ratio"` (OpenCV's `CALIB_FIX_ASPECT_RATIO`): `alpha_u / alpha_v` held at the
+      seed's ratio, the focal length estimated (`alpha_u` follows `alpha_v`; its standard error
+      is the ratio times alpha_v's, and the two are fully correlated in `covariance`). With
+      either focal length held, both are.
     - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew
       (e.g. the DLT's small, noisy one) is set to zero. To hold a seed's non-zero skew instead,
       name it in `fix`.
@@ -1095,5 +1192,5 @@ def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) 
         inliers=inliers,
         covariance=cov,
         standard_errors=std,
-        parameter_names=tuple(parameter_names(cameras.lens)[i] for i in free),
+        parameter_names=tuple(parameter_names(cameras.lens)[i] for i in free.reported),
     )

@@ -67,9 +67,11 @@ from ._refine import (
     _pixel_columns,
     _robust_residuals,
     _skew_model,
+    _tied_columns,
     _unpack,
     check_loss,
     parameter_names,
+    reported_covariance,
     residual_variance,
 )
 from ._registration import RigidTransform
@@ -162,7 +164,8 @@ class RigCalibration(eqx.Module):
       `rotation_std` `(C, 3)` of its rotation (degrees, about the camera's axes), in the gauge
       of the solve's reference camera, which has none (`reference`; with `reference="target"`,
       the camera that saw the most frames); `parameter_std` `(C, P)` of the free parameters
-      `parameter_names`, whose covariance blocks are `covariance` `(C, P, P)`.
+      `parameter_names` (with alpha_u, which follows alpha_v, where `fix="aspect_ratio"`), whose
+      covariance blocks are `covariance` `(C, P, P)`.
     - `iterations`, `result` (an `optx.RESULTS` index, 0 = successful).
     - `origin_frame`: with `reference="target"`, the frame (an index along the frame axis) whose
       target pose is the world frame; else None.
@@ -716,6 +719,7 @@ def _block_rows(yc, yf, cam, frame, data, free, loss):
     tf = t0f + yf[3:] * move_f * distance
     world = jnp.stack([m[i] + tf[i] for i in range(3)], -1)
     columns, dworld = _pixel_columns(p, R0, world, mask)
+    columns = _tied_columns(columns, p0, free)  # (alpha_u following alpha_v: `Free`)
     rows = [columns[k] for k in free]
     # the frame's rotation increments: d(u, v) / d w_k = g . ((Jw e_k) x m) = (Jw e_k) . (m x g)
     Jw = [[row[k] for row in Jw] for k in range(3)]  # its columns
@@ -1036,6 +1040,11 @@ def _held_through(initial: Camera, given: Camera, free) -> Camera:
     (implicit derivatives). With `fix="intrinsics"` the derivative of the answer's focal lengths
     by the given ones was zero, not one. The values stay `initial`'s, to the last bit."""
     held = set(parameter_names(given.lens)) - {parameter_names(given.lens)[i] for i in free}
+    if getattr(free, "tied", False):
+        # alpha_u follows alpha_v at the given ratio: alpha_u carries the ratio's derivative
+        # times alpha_v (which is free, and carries none), `d alpha_u - ratio d alpha_v`
+        ratio = jax.lax.stop_gradient(given.alpha_u / given.alpha_v)
+        given = eqx.tree_at(lambda c: c.alpha_u, given, given.alpha_u - ratio * given.alpha_v)
 
     def through(x, g, hold):  # x's value, g's derivative where `hold`
         d = g - jax.lax.stop_gradient(g)
@@ -1081,13 +1090,11 @@ def _uncertainty(y, args, n: _Normal, residuals, *, free, loss):
         if index in free:
             j = free.index(index)
             rotation = rotation.at[:, k].set(cov[:, j, j])
-    std = jnp.sqrt(jnp.diagonal(cov, axis1=-2, axis2=-1))
     scale_free = scale[:, jnp.asarray(free, dtype=int)]
-    return (
-        cov * scale_free[:, :, None] * scale_free[:, None, :],
-        std * scale_free,
-        (jnp.sqrt(position), jnp.rad2deg(jnp.sqrt(rotation))),
-    )
+    cov = cov * scale_free[:, :, None] * scale_free[:, None, :]  # the parameters' own units
+    cov = reported_covariance(cov, free, p0)  # (alpha_u's too where it follows alpha_v)
+    std = jnp.sqrt(jnp.diagonal(cov, axis1=-2, axis2=-1))
+    return cov, std, (jnp.sqrt(position), jnp.rad2deg(jnp.sqrt(rotation)))
 
 
 # Two programs, the rig's start and its joint solve, so that XLA compiles each on a thread of its
@@ -1328,7 +1335,11 @@ def calibrate_rig(
     - `fix`: parameters held at their starting values, by name or group as for `mvcalib.refine`
       (`"intrinsics"`, `"distortion"`, `"focal"`, `"principal_point"`, ...); `"pose"` holds
       every camera's pose as given in `cameras`, in their world frame (`reference` is then
-      unused), so that only the target's poses are fitted.
+      unused), so that only the target's poses are fitted. `"aspect_ratio"` holds each camera's
+      `alpha_u / alpha_v` at its starting ratio, the focal length estimated (OpenCV's
+      `CALIB_FIX_ASPECT_RATIO`): that of `cameras` where given (e.g. 1, as OpenCV's own start),
+      else of the camera's closed form from its own frames (as `calibrate_planar`'s for a
+      board; the median focal lengths of its frames' DLTs for a 3-D target); `initial` has it.
     - `distortion`: the coefficients estimated (default as for `mvcalib.refine`: a pinhole's
       k1, k2, p1, p2; a fisheye's k1..k4); `skew`: estimate it.
     - `reference`: the camera whose frame is the world's (default 0), or `"target"`: the
@@ -1452,7 +1463,7 @@ def calibrate_rig(
         cameras = _fisheye_start(target, pixels, mask, image_size, loss)
     names = parameter_names(lens)
     free = _free_parameters(distortion, fix, skew, lens)
-    fixed = set(names) - {names[i] for i in free}
+    fixed = set(names) - {names[i] for i in free.reported}  # (a tied alpha_u is not held)
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:
         raise ValueError("holding the intrinsics fixed needs the starting rig: pass `cameras=`.")
@@ -1515,7 +1526,7 @@ def calibrate_rig(
         poor_pairs = out.pop("poor_pairs")
         result = RigCalibration(
             skipped=jax.device_put(skipped) if concrete else skipped,
-            parameter_names=tuple(names[i] for i in free),
+            parameter_names=tuple(names[i] for i in free.reported),
             **out,
         )
         statuses = np.asarray(result.status) if concrete else None

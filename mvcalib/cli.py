@@ -238,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=(),
         metavar="LIST",
         help="held at the --intrinsics values, e.g. intrinsics,distortion (groups: intrinsics, "
-        "focal, principal_point, distortion, pose; or names: alpha_u, k1, ...)",
+        "focal, principal_point, distortion, pose; or names: alpha_u, k1, ...); aspect_ratio "
+        "holds alpha_u / alpha_v at the start's ratio, the focal length fitted",
     )
     rig.add_argument(
         "--distortion",

@@ -65,6 +65,50 @@ def test_joint_rig_with_registration_equals_refine_plus_procrustes():
     np.testing.assert_allclose(joint.cameras.center, moved.center, atol=1e-4)
 
 
+def test_fix_aspect_ratio_in_a_joint_rig_is_each_cameras_own(monkeypatch):
+    """`fix="aspect_ratio"`: a joint rig of a known target is each camera's own refinement with
+    the ratio held (`mc.refine`, checked against OpenCV), dense or matrix-free; with shared
+    intrinsics the ratio is the first camera's; in bundle adjustment each seed's."""
+    rig, seed, T, anchors = anchored_rig()
+    cal = mc.calibrate(rig.world, rig.pixels, rig.mask)
+    ratio = np.asarray(seed.alpha_u / seed.alpha_v)
+    options = dict(transform=T, anchors=anchors, anchor_sigma=0.2, distortion=())
+    joint = mc.refine_rig(seed, rig.world, rig.pixels, rig.mask, fix="aspect_ratio", **options)
+    alone = mc.refine(zero_skew(cal.cameras), rig.world, rig.pixels, rig.mask, distortion=(),
+                      fix="aspect_ratio")  # fmt: skip
+    assert bool(joint.ok) and bool(alone.ok.all())
+    np.testing.assert_allclose(joint.cameras.alpha_u / joint.cameras.alpha_v, ratio, rtol=1e-12)
+    np.testing.assert_allclose(joint.rms_after, alone.rms_after, rtol=1e-7)
+    np.testing.assert_allclose(joint.cameras.alpha_v, alone.cameras.alpha_v, rtol=1e-7)
+    assert np.all(np.abs(np.asarray(joint.cameras.alpha_v / seed.alpha_v) - 1) > 1e-6)
+    monkeypatch.setattr(mc._bundle, "TARGET_DENSE_LIMIT", 0)  # the matrix-free steps
+    free = mc.refine_rig(seed, rig.world, rig.pixels, rig.mask, fix="aspect_ratio", **options)
+    monkeypatch.undo()
+    np.testing.assert_allclose(free.cameras.alpha_u / free.cameras.alpha_v, ratio, rtol=1e-12)
+    np.testing.assert_allclose(free.cameras.alpha_v, joint.cameras.alpha_v, rtol=1e-7)
+    # one camera in several snapshots: its ratio is the first snapshot's
+    _, one = grid_rig(2, 6, same_intrinsics=True)
+    snapshots = zero_skew(mc.calibrate(one.world, one.pixels, one.mask).cameras)
+    shared = mc.refine_rig(snapshots, one.world, one.pixels, one.mask, fix="aspect_ratio",
+                           shared_intrinsics=True, distortion=())  # fmt: skip
+    assert bool(shared.ok)
+    first = float(snapshots.alpha_u[0] / snapshots.alpha_v[0])
+    np.testing.assert_allclose(shared.cameras.alpha_u / shared.cameras.alpha_v, first, rtol=1e-12)
+    assert np.all(np.asarray(shared.cameras.alpha_v) == float(shared.cameras.alpha_v[0]))
+    # bundle adjustment: the points free too (the rows by forward mode, `_bundle_normal`)
+    world = np.asarray(rig.world)
+    rough = world + np.random.default_rng(1).normal(scale=0.5, size=world.shape)  # mm
+    start = zero_skew(mc.calibrate(rough, rig.pixels, rig.mask).cameras)
+    ids = np.arange(0, len(world), 5)
+    ba = mc.refine_rig(start, rough, rig.pixels, rig.mask, anchors=(ids, world[ids]),
+                       anchor_sigma=0.05, points="free", distortion=(),
+                       fix="aspect_ratio")  # fmt: skip
+    assert bool(ba.ok)
+    np.testing.assert_allclose(ba.cameras.alpha_u / ba.cameras.alpha_v,
+                               start.alpha_u / start.alpha_v, rtol=1e-12)  # fmt: skip
+    assert np.all(np.asarray(ba.rms_after) < np.asarray(ba.rms_before))
+
+
 def test_free_points_bundle_adjustment_recovers_the_target():
     target, rig = grid_rig(1, 8)
     rng = np.random.default_rng(1)

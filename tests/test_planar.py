@@ -386,6 +386,80 @@ def test_agrees_with_opencv_calibrate_camera(noisy):
     assert abs(float(out.rms) - rms) < 1e-9
 
 
+def test_fix_aspect_ratio_holds_the_closed_forms_ratio_as_opencv_holds_its_guesss(noisy):
+    """`fix="aspect_ratio"` holds alpha_u / alpha_v at the closed form's ratio: OpenCV's
+    CALIB_FIX_ASPECT_RATIO started from the closed form's K gives the same camera; without a
+    guess OpenCV holds its own start's ratio, 1. Without distortion and noise the closed form is
+    exact, and so is the ratio held."""
+    cv2 = pytest.importorskip("cv2")
+    from mvcalib._refine import default_solver
+
+    pixels, mask, free = noisy
+    pixels = pixels.astype(np.float32).astype(np.float64)  # what OpenCV sees
+    out = mc.calibrate_planar(WORLD, pixels, mask, fix="aspect_ratio")
+    start = np.asarray(out.closed_form.K[0])
+    ratio = start[0, 0] / start[1, 1]
+    K = np.asarray(out.K)
+    assert bool(out.converged) and np.all(np.asarray(out.status) == 0)
+    np.testing.assert_allclose(K[0, 0] / K[1, 1], ratio, rtol=1e-12)
+    assert abs(K[1, 1] / start[1, 1] - 1) > 1e-4  # the focal length moved
+    assert float(out.rms) > float(free.rms)  # (the closed form's ratio is not the truth's)
+    objects = [WORLD[m].astype(np.float32) for m in mask]
+    images = [pixels[i][m].astype(np.float32) for i, m in enumerate(mask)]
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_ASPECT_RATIO
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    rms, K_cv, dist, rvecs, _ = cv2.calibrateCamera(
+        objects, images, IMAGE, start.copy(), np.zeros(5),
+        flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=criteria,
+    )  # fmt: skip
+    print(f"OpenCV from the closed form: RMS {rms:.6f}, ours {float(out.rms):.6f}")
+    np.testing.assert_allclose(K, K_cv, rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(out.dist), dist.ravel(), atol=1e-8)
+    R = np.stack([cv2.Rodrigues(r)[0] for r in rvecs])
+    np.testing.assert_allclose(np.asarray(out.camera.R), R, atol=1e-8)
+    assert abs(float(out.rms) / rms - 1) < 1e-9
+    # the whole problem by optimistix (the tie in `_planar_unknowns`) lands there too
+    whole = mc.calibrate_planar(
+        WORLD, pixels, mask, fix="aspect_ratio", solver=default_solver(np.float64)
+    )
+    assert relative(np.asarray(whole.K), K) < 1e-8
+    # OpenCV without a guess: its own start's ratio, 1
+    _, K_own, *_ = cv2.calibrateCamera(objects, images, IMAGE, None, None, flags=flags,
+                                       criteria=criteria)  # fmt: skip
+    assert K_own[0, 0] == K_own[1, 1] and abs(ratio - 1) > 1e-3
+    # exact data without distortion: the closed form's ratio is the truth's, as is the rest
+    exact, mask = observe(dist=np.zeros(5))
+    out = mc.calibrate_planar(WORLD, exact, mask, fix="aspect_ratio")
+    assert relative(np.asarray(out.K), K_TRUE) < 1e-9 and float(out.rms) < 1e-6
+
+
+def test_opencvs_aspect_ratio_of_one_is_a_rig_of_one_camera_started_at_one(noisy):
+    """OpenCV's CALIB_FIX_ASPECT_RATIO without a guess holds its own start's ratio, 1: the same
+    camera as `calibrate_rig` of this one camera started from a ratio of 1."""
+    cv2 = pytest.importorskip("cv2")
+    import equinox as eqx
+
+    pixels, mask, _ = noisy
+    pixels = pixels.astype(np.float32).astype(np.float64)  # what OpenCV sees
+    closed = mc.calibrate_planar(WORLD, pixels, mask, refine=False).camera[:1]
+    start = eqx.tree_at(lambda c: c.alpha_u, closed, closed.alpha_v)
+    out = mc.calibrate_rig(WORLD, pixels[None], mask[None], cameras=start, fix="aspect_ratio",
+                           distortion=("k1", "k2"))  # fmt: skip
+    assert bool(out.ok.all()) and bool(out.converged)
+    objects = [WORLD[m].astype(np.float32) for m in mask]
+    images = [pixels[i][m].astype(np.float32) for i, m in enumerate(mask)]
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_ASPECT_RATIO
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    rms, K, dist, _, _ = cv2.calibrateCamera(objects, images, IMAGE, None, None, flags=flags,
+                                             criteria=criteria)  # fmt: skip
+    assert K[0, 0] == K[1, 1]
+    ours = np.asarray(out.cameras.K[0])
+    assert ours[0, 0] == ours[1, 1] and abs(ours[1, 1] / float(closed.alpha_v[0]) - 1) > 1e-4
+    np.testing.assert_allclose(ours, K, rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(out.cameras.dist[0]), dist.ravel(), atol=1e-8)
+    assert abs(float(out.rms) / rms - 1) < 1e-9
+
+
 # ------------------------------------------------------------------------------ Zhang's data
 def load_zhang():
     root = data_dir("zhang1998")

@@ -3,6 +3,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 from conftest import box_corners_with_wild_dots
 from scipy.optimize import least_squares
@@ -273,6 +274,115 @@ def test_fix_holds_parameters_and_distortion_choice():
         mc.refine(seed, world, pixels, mask, fix=("focus",))
     with pytest.raises(KeyError):
         out.std("k2")
+
+
+def test_fix_aspect_ratio_agrees_with_opencv():
+    """`fix="aspect_ratio"` holds alpha_u / alpha_v at the seed's ratio and estimates the focal
+    length, as `cv2.calibrateCamera` does with CALIB_FIX_ASPECT_RATIO from the same guess."""
+    cams, world, pixels, mask = distorted_rig(23, 4)
+    world = np.asarray(world).astype(np.float32).astype(np.float64)  # what OpenCV sees
+    pixels = np.asarray(pixels).astype(np.float32).astype(np.float64)
+    mask = np.asarray(mask)
+    dlt = mc.calibrate(world, pixels, mask)
+    seed = zero_skew(dlt.cameras)
+    ratio = np.asarray(seed.alpha_u / seed.alpha_v)
+    assert np.abs(ratio / np.asarray(cams.alpha_u / cams.alpha_v) - 1).max() > 1e-4  # not true
+    out = mc.refine(seed, world, pixels, mask, fix="aspect_ratio")
+    free = mc.refine(seed, world, pixels, mask)
+    assert bool(out.ok.all()) and np.all(np.asarray(out.iterations) < 100)
+    np.testing.assert_allclose(out.cameras.alpha_u / out.cameras.alpha_v, ratio, rtol=1e-12)
+    assert np.all(np.abs(np.asarray(out.cameras.alpha_v / seed.alpha_v) - 1) > 1e-6)  # it moved
+    assert np.all(np.asarray(out.rms_after) <= np.asarray(out.rms_before))  # the DLT seed's
+    # one constraint more than the free focal lengths: no better fit, and the rest as OpenCV's
+    assert np.all(np.asarray(out.rms_after) >= np.asarray(free.rms_after) * (1 - 1e-12))
+    assert out.parameter_names == ("alpha_u",) + free.parameter_names[1:]
+    np.testing.assert_allclose(out.std("alpha_u"), ratio * out.std("alpha_v"), rtol=1e-12)
+    assert np.all(np.asarray(out.std("alpha_v")) > 0)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    for i in range(4):
+        W, px = world[mask[i]], pixels[i][mask[i]]
+        rms_cv, K_cv, dist_cv, _, _ = cv2.calibrateCamera(
+            [W.astype(np.float32)], [px.astype(np.float32)], IMAGE, np.array(seed[i].K),
+            np.zeros(5), flags=flags, criteria=crit,
+        )  # fmt: skip
+        ours = out.cameras[i]
+        print(f"camera {i}: alpha_v {float(ours.alpha_v):.6f}, OpenCV's {K_cv[1, 1]:.6f}")
+        np.testing.assert_allclose(float(ours.alpha_u), K_cv[0, 0], rtol=1e-6)
+        np.testing.assert_allclose(float(ours.alpha_v), K_cv[1, 1], rtol=1e-6)
+        assert abs(float(out.rms_after[i]) / rms_cv - 1) < 1e-6, (i, out.rms_after[i], rms_cv)
+    # alpha_u held alone is another problem (the same free indices, untied: no program shared)
+    alone = mc.refine(seed, world, pixels, mask, fix="alpha_u")
+    np.testing.assert_array_equal(alone.cameras.alpha_u, seed.alpha_u)
+    moved = np.asarray(alone.cameras.alpha_u / alone.cameras.alpha_v) / ratio - 1
+    assert np.abs(moved).min() > 1e-9
+    # either focal length held holds both
+    held = mc.refine(seed, world, pixels, mask, fix=("aspect_ratio", "alpha_v"))
+    np.testing.assert_array_equal(held.cameras.alpha_u, seed.alpha_u)
+    np.testing.assert_array_equal(held.cameras.alpha_v, seed.alpha_v)
+    assert "alpha_u" not in held.parameter_names and "alpha_v" not in held.parameter_names
+
+
+def test_the_tied_focal_lengths_jacobian_is_the_chain_rule():
+    """With alpha_u tied to alpha_v (`fix="aspect_ratio"`), the written-out Jacobian against
+    forward-mode autodiff of `Camera.project` with alpha_u = ratio * alpha_v."""
+    from mvcalib import _refine as R
+
+    cams, world, pixels, mask = distorted_rig(29, 1)
+    cam = eqx.tree_at(lambda c: c.alpha_u, cams[0], 1.03 * cams[0].alpha_u)
+    free = R._free_parameters(DIST_NAMES, "aspect_ratio", False)
+    assert free.tied and 0 not in free and 1 in free
+    p0 = R._pack(cam)
+    ratio = float(cam.alpha_u / cam.alpha_v)
+    args = (p0, cam.R, R._scales(p0), world, pixels[0], jnp.asarray(mask[0]), None)
+    y = jnp.linspace(-1e-2, 1e-2, len(free))
+
+    def plain(y):
+        p = p0.at[jnp.asarray(free)].add(y * args[2][jnp.asarray(free)])
+        p = p.at[0].set(ratio * p[1])
+        r = jnp.where(mask[0][:, None], R._unpack(p, cam.R).project(world) - pixels[0], 0.0)
+        return r.T.reshape(-1)
+
+    expected = jax.jit(jax.jacfwd(plain))(y)
+    scale = np.max(np.abs(expected))
+    written = jax.jit(lambda y: R._residual_jacobian_t(y, args, free))(y)
+    np.testing.assert_allclose(written.T, expected, atol=1e-13 * scale)
+    through_jvp = jax.jit(jax.jacfwd(lambda y: R._residuals(y, args, free).reshape(-1)))(y)
+    np.testing.assert_allclose(through_jvp, expected, atol=1e-13 * scale)
+    np.testing.assert_allclose(R._residuals(y, args, free).reshape(-1), plain(y), atol=1e-9)
+
+
+def test_fix_aspect_ratio_is_differentiable_through_its_optimum():
+    """Implicit derivatives of a refinement with the aspect ratio held: by the pixels, and by
+    the seed's alpha_u, which sets the ratio (the free parameters' seed has no influence)."""
+    cams, world, pixels, mask = distorted_rig(31, 1)
+    seed = zero_skew(mc.calibrate(world, pixels, mask).cameras)[0]
+    pixels, mask = pixels[0], mask[0]
+    solver = optx.GaussNewton(rtol=1e-12, atol=1e-12)  # converges to rounding here
+    w = np.random.default_rng(8).standard_normal(4)
+
+    def f(alpha_u, alpha_v, px):
+        start = eqx.tree_at(lambda c: (c.alpha_u, c.alpha_v), seed, (alpha_u, alpha_v))
+        out = mc.refine(start, world, px, mask, fix="aspect_ratio", solver=solver)
+        c = out.cameras
+        return jnp.vdot(w, jnp.stack([c.alpha_u, c.alpha_v, c.u0, c.t[2]])), out.ok
+
+    value_and_grad = jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2), has_aux=True))
+    au, av = seed.alpha_u, seed.alpha_v
+    (_, ok), (g_au, g_av, g_px) = value_and_grad(au, av, pixels)
+    assert bool(ok)
+    v = np.random.default_rng(9).standard_normal(pixels.shape) * np.asarray(mask)[:, None]
+    h = 1e-5  # px
+    at = lambda a, b, px: float(value_and_grad(a, b, px)[0][0])  # noqa: E731
+    fd = (at(au, av, pixels + h * v) - at(au, av, pixels - h * v)) / (2 * h)
+    np.testing.assert_allclose(np.vdot(g_px, v), fd, rtol=1e-6)
+    h = 1e-6 * float(au)  # (the ratio moves the optimum far: at 1e-4, 0.5 % off by curvature)
+    fd = (at(au + h, av, pixels) - at(au - h, av, pixels)) / (2 * h)
+    np.testing.assert_allclose(float(g_au), fd, rtol=1e-5)
+    assert abs(float(g_au)) > 0.1 * abs(fd) > 0
+    # the same ratio from another alpha_v: the result moves as the ratio does
+    fd = (at(au, av + h, pixels) - at(au, av - h, pixels)) / (2 * h)
+    np.testing.assert_allclose(float(g_av), fd, rtol=1e-5)
 
 
 def test_too_few_points_raise_alone_and_are_flagged_in_a_rig():

@@ -514,6 +514,53 @@ def test_gradient_through_the_cameras_it_holds_equals_central_differences():
     np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-9)
 
 
+def test_fix_aspect_ratio_holds_each_cameras_starting_ratio():
+    """`fix="aspect_ratio"`: each camera's alpha_u / alpha_v stays its start's (the closed
+    form's, or the given cameras'), the focal length estimated. Started from the true ratios
+    (and focal lengths 2 % off), the rig lands within the noise of the truth, as the free one
+    does; the standard error of alpha_u is the ratio times alpha_v's; the given ratio's
+    derivative reaches the answer (central differences)."""
+    rig = _rig(noise=0.3, n_cameras=4, n_frames=20, key=0)
+    truth = np.asarray(rig.cameras.alpha_u / rig.cameras.alpha_v)
+    free = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    held = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, fix="aspect_ratio")
+    assert bool(held.ok.all()) and bool(held.converged)
+    start = np.asarray(held.initial.alpha_u / held.initial.alpha_v)
+    np.testing.assert_allclose(held.cameras.alpha_u / held.cameras.alpha_v, start, rtol=1e-12)
+    assert np.abs(start / truth - 1).max() > 1e-3 and float(held.rms) > float(free.rms)
+    # from the true ratios
+    cams = free.cameras
+    given = eqx.tree_at(lambda c: (c.alpha_u, c.alpha_v), cams,
+                        (1.02 * truth * cams.alpha_v, 1.02 * cams.alpha_v))  # fmt: skip
+    out = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=given, fix="aspect_ratio")
+    assert bool(out.ok.all()) and bool(out.converged)
+    np.testing.assert_allclose(out.cameras.alpha_u / out.cameras.alpha_v, truth, rtol=1e-12)
+    names = out.parameter_names
+    assert names[:2] == ("alpha_u", "alpha_v") and names == free.parameter_names
+    std = np.asarray(out.parameter_std)
+    error = np.asarray(out.cameras.alpha_v - rig.cameras.alpha_v)
+    error_free = np.asarray(free.cameras.alpha_v - rig.cameras.alpha_v)
+    print(f"alpha_v off by {error.round(2)} px, {(error / std[:, 1]).round(2)} standard errors "
+          f"(free: {error_free.round(2)} px)")  # fmt: skip
+    assert np.abs(error / std[:, 1]).max() < 4.0
+    assert np.abs(error).max() < 1.5 * np.abs(error_free).max()
+    assert abs(float(out.rms) / float(free.rms) - 1) < 1e-3  # (one constraint, true)
+    np.testing.assert_allclose(std[:, 0], truth * std[:, 1], rtol=1e-9)
+    assert np.all(std[:, 1] > 0)
+
+    def solve(alpha_u):
+        cameras = eqx.tree_at(lambda c: c.alpha_u, given, alpha_u)
+        return mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=cameras,
+                                fix="aspect_ratio").cameras  # fmt: skip
+
+    a = given.alpha_u
+    gradient = jax.grad(lambda a: solve(a).alpha_v[1])(a)
+    h = 1e-2  # px of a ~1000 px focal length
+    numeric = (solve(a.at[1].add(h)).alpha_v[1] - solve(a.at[1].add(-h)).alpha_v[1]) / (2 * h)
+    assert abs(float(numeric)) > 1e-3  # (the ratio moves the focal length)
+    np.testing.assert_allclose(gradient[1], numeric, rtol=1e-4)
+
+
 def test_one_camera_with_one_frame_of_the_board_is_told_to_record_more_poses():
     """One photo of a board, one camera (a user's first try): the message spoke of array shapes
     and of choosing another reference camera, there being none."""
