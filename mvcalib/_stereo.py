@@ -228,7 +228,9 @@ def stereo_rectify(
     - `fov_scale`: for fisheyes, OpenCV's: the focal length divided by it (above 1 shows more).
 
     **Returns:** a `StereoRectification`: the rectified cameras, OpenCV's `R1 R2 P1 P2 Q` and
-    valid regions, and `maps()` to resample images.
+    valid regions, and `maps()` to resample images. Where there is none (a fisheye that sees
+    beyond 90 degrees at the middle of an image edge: a pinhole cannot hold it), a `ValueError`
+    says so; inside a `jax.jit`, NaN.
 
     **Example:**
 
@@ -268,7 +270,21 @@ def stereo_rectify(
         raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
     fov = np.asarray(fov_scale, dtype)
     out = _rectify(cameras, np.asarray(size, dtype), scaling, np.asarray(zero_disparity), fov)
-    return StereoRectification(*out, image_size=size)
+    rect = StereoRectification(*out, image_size=size)
+    P = rect.P
+    if _buckets.applies(P) and not np.isfinite(np.asarray(P)).all():
+        # (called eagerly; inside the caller's trace it stays NaN, as the docstring says)
+        what = (
+            "a fisheye sees the middle of an image edge more than 90 degrees off the rectified "
+            "axis, which a rectified pinhole image cannot hold (cv2.fisheye.stereoRectify gives "
+            "focal lengths of a few tens of pixels there); rectify a crop of the images about "
+            "the principal points (the cameras' u0, v0 less the crop's corner, its size as "
+            "`image_size`)"
+            if cameras.lens == "fisheye"
+            else "are the cameras' parameters finite, and apart?"
+        )
+        raise ValueError(f"`stereo_rectify` found no finite rectification: {what}.")
+    return rect
 
 
 @_buckets.eager

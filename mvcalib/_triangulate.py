@@ -240,9 +240,16 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     # Hidden pixels are replaced before any arithmetic, so that NaN in them reaches neither the
     # points nor their derivatives.
     m = mask & jnp.isfinite(u) & jnp.isfinite(v)
+    fisheye = cameras.lens == "fisheye"
+    if fisheye:
+        # a pixel outside the lens's image circle (beyond its polynomial's fold) has no ray:
+        # hidden, as a NaN pixel is (it made the point NaN, whatever the other views saw: a
+        # fisheye user's trial); found on the pixels as given, then replaced as the others
+        safe = [jnp.where(m, x, c[:, None]) for x, c in ((u, cameras.u0), (v, cameras.v0))]
+        rays = jax.lax.stop_gradient(cameras.rays(jnp.stack(safe, -1)))
+        m = m & jnp.all(jnp.isfinite(rays), -1)
     pu = jnp.where(m, u, cameras.u0[:, None])
     pv = jnp.where(m, v, cameras.v0[:, None])
-    fisheye = cameras.lens == "fisheye"
     if fisheye:  # unit rays, beyond 90 degrees too
         rays = jnp.moveaxis(cameras.rays(jnp.stack([pu, pv], -1)), -1, 0)
     else:

@@ -217,6 +217,28 @@ def test_triangulation_with_views_beside_and_behind_the_image_plane():
     np.testing.assert_allclose(np.asarray(pair.points)[seen], world[seen], rtol=0, atol=1e-11)
 
 
+def test_a_view_outside_the_image_circle_is_hidden_not_the_point_lost():
+    """A fisheye user's trial: one spurious detection outside a lens's image circle (it has no
+    ray) made the whole point NaN, `views` counting it. It is hidden now, as a NaN pixel is:
+    the point from the other views, bit for bit as with that view masked."""
+    cameras, world, mask, _ = fisheye_ring(6, n_points=50)
+    pixels = np.array(cameras.project(world))
+    one = int(np.flatnonzero(mask.sum(0) >= 3)[0])
+    view = int(np.flatnonzero(mask[:, one])[0])
+    pixels[view, one] = [-1.0e5, 0.0]  # far outside any image circle
+    assert np.isnan(np.asarray(cameras[view].rays(pixels[view, one][None]))).all()
+    out = mc.triangulate(cameras, pixels, mask)
+    hidden = mask.copy()
+    hidden[view, one] = False
+    expected = mc.triangulate(cameras, pixels, hidden)
+    assert np.array_equal(np.asarray(out.points), np.asarray(expected.points))
+    assert int(out.views[one]) == int(mask[:, one].sum()) - 1 and bool(out.ok[one])
+    np.testing.assert_allclose(np.asarray(out.points)[one], world[one], rtol=0, atol=1e-9)
+    # and the derivatives of the others stay finite
+    gradient = jax.grad(lambda p: mc.triangulate(cameras, p, mask).points[one].sum())(pixels)
+    assert np.isfinite(np.asarray(gradient)).all()
+
+
 def test_fisheye_error_falls_as_views_are_added_like_one_over_root_n():
     cameras, world, _, _ = fisheye_ring(32, n_points=100, seed=5, field=180.0)
     cameras = cameras[np.random.default_rng(5).permutation(32)]  # not in order round the room

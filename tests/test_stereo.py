@@ -248,3 +248,17 @@ def test_bad_input_is_refused_with_the_reason():
         mc.fundamental_matrix(fisheye)
     with pytest.raises(ValueError, match="fov_scale"):
         mc.stereo_rectify(fisheye, SIZE, fov_scale=0.0)
+    # a fisheye whose image edges lie beyond 90 degrees off axis (a 180-degree lens: f = 330 px
+    # across 1280 px): no pinhole holds it; all NaN before, silently (a fisheye user's trial)
+    wide = mc.Camera.stack(
+        [
+            mc.Camera(330.0, 330.0, 640.0, 360.0, jnp.eye(3), jnp.zeros(3), lens="fisheye"),
+            mc.Camera(
+                330.0, 330.0, 640.0, 360.0, jnp.eye(3), jnp.array([-0.1, 0, 0]), lens="fisheye"
+            ),
+        ]
+    )
+    with pytest.raises(ValueError, match="more than 90 degrees off the rectified axis"):
+        mc.stereo_rectify(wide, SIZE)
+    traced = jax.jit(lambda c: mc.stereo_rectify(c, SIZE).P)(wide)
+    assert np.isnan(np.asarray(traced)).any()
