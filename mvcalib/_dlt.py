@@ -507,12 +507,25 @@ def _eigen_jvp(eigen, primals, tangents):
     (S,), (dS,) = primals, tangents
     v, s = eigen(S)
 
-    def tangent(S, dS, v):
-        return _small.eigenvector_tangent(_normal_matrix(S), v, _normal_matrix(dS) @ v)
+    def tangent(S, dS, v, s):
+        # A camera whose vector is not unique (it sees nothing, too few points or a plane: no
+        # gap above the smallest eigenvalue) is failed and NaN, and gets a zero derivative: its
+        # system replaced before the solve, whose transpose would otherwise carry 0 * inf = NaN
+        # into every camera's shared world points under `jax.grad` (a JAX user's trial: one
+        # failed camera made the whole world gradient NaN; forward mode was right).
+        G = _normal_matrix(S)
+        scale = jnp.sqrt(jnp.abs(jnp.trace(G)))
+        count = S[0, _ENTRY[3, 3]]  # (the first block's last entry: the points it saw)
+        unique = (count >= _validate.MIN_POINTS) & jnp.all(jnp.isfinite(v))
+        unique &= s > 64 * jnp.finfo(G.dtype).eps * scale
+        G = jnp.where(unique, G, jnp.eye(12, dtype=G.dtype))
+        v = jnp.where(unique, v, jnp.eye(12, dtype=G.dtype)[0])
+        dG_v = jnp.where(unique, _normal_matrix(dS) @ v, 0.0)
+        return _small.eigenvector_tangent(G, v, dG_v)
 
     first = functools.partial(jnp.moveaxis, source=(0, 1), destination=(-2, -1))
-    dv = jnp.vectorize(tangent, signature="(4,10),(4,10),(12)->(12)")(
-        first(S), first(dS), jnp.moveaxis(v, 0, -1)
+    dv = jnp.vectorize(tangent, signature="(4,10),(4,10),(12),()->(12)")(
+        first(S), first(dS), jnp.moveaxis(v, 0, -1), s
     )
     return (v, s), (jnp.moveaxis(dv, -1, 0), jnp.zeros_like(s))
 
@@ -659,6 +672,14 @@ def _camera(
     world = jnp.where(visible[:, None], world, 0.0)
     pixels = jnp.where(visible[:, None], pixels, 0.0)
     all_finite = jnp.all(visible | ~mask)  # (visible = mask & finite)
+    # A camera that has no solution (too few points; no unique vector: s_11 NaN or 0) is NaN
+    # whatever its vector; that vector is replaced by a harmless one before any arithmetic, so
+    # that the camera's zero derivative stays zero. Its vector was inverse iteration's start
+    # (0, ..., 0, 1), whose ||m3|| = 0 put 0 * inf into the normalisations' cotangents, and
+    # through them into every camera's shared world points under `jax.grad` (a JAX user's trial:
+    # one camera that saw nothing made the whole world gradient NaN; forward mode was right).
+    solvable = (jnp.sum(visible) >= _validate.MIN_POINTS) & (s_11 > 0)
+    v = jnp.where(solvable, v, jnp.eye(3, 4, dtype=v.dtype).ravel() / jnp.sqrt(3.0))
     # De-normalised, P = T2^-1 V T3 with T = [[s I, -s c], [0, 1]], written out.
     V = v.reshape(3, 4)
     V = jnp.concatenate([s3 * V[:, :3], V[:, 3:] - s3 * _dot3(V[:, :3].T, c3)[:, None]], axis=1)
@@ -670,7 +691,9 @@ def _camera(
     behind = jnp.sum(jnp.where(visible, depth, 0.0)) < 0
     P, depth = jnp.where(behind, -P, P), jnp.where(behind, -depth, depth)
 
-    condition = norm / s_11
+    # (a diagnostic, without a derivative: where s_11 is NaN, a failed camera's, its partial
+    # 1 / s_11 carried 0 * NaN into the world points' cotangent under `jax.grad`)
+    condition = jax.lax.stop_gradient(norm / s_11)
     n_visible = jnp.sum(visible)
     # A camera whose focal lengths are negligible against its pixels' spread (`1 / s2`) sees
     # them over ~180 degrees: no camera. With all but one point on a plane a one-parameter family

@@ -350,6 +350,32 @@ def test_refine_gradient_is_implicit_and_ignores_the_seed():
     assert np.abs(g_seed.dist[2:]).max() > 0 and float(g_seed.skew) == 0.0
 
 
+@pytest.mark.parametrize("failure", ["sees nothing", "sees 5 points", "sees a plane"])
+@pytest.mark.parametrize("refine", [False, True])
+def test_a_failed_camera_leaves_the_others_world_gradient_alone(failure, refine):
+    """A JAX user's trial: one camera of a rig that fails (sees nothing, too few points, only
+    a plane) made `jax.grad` of a healthy camera's centre with respect to the shared world
+    points NaN in every entry; `jax.jacfwd` was right. Now it equals the gradient of the rig
+    without that camera."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=4, noise=0.3)
+    world, pixels, mask = rig.world, rig.pixels, np.asarray(rig.mask).copy()
+    floor = np.abs(np.asarray(world)[:, 0] - np.asarray(world)[:, 0].min()) < 1e-9
+    mask[3] = {"sees nothing": False, "sees 5 points": np.arange(19) < 5, "sees a plane": floor}[
+        failure
+    ]
+    status = mc.calibrate(world, pixels, mask).status
+    assert int(status[3]) != mc.Status.OK and (np.asarray(status[:3]) == mc.Status.OK).all()
+
+    def centre_x(w, pixels, mask):
+        return mc.calibrate(w, pixels, mask, refine=refine).cameras.center[0, 0]
+
+    mask = jnp.asarray(mask)  # (as a JAX array, as the trial had it)
+    gradient = jax.grad(centre_x)(world, pixels, mask)
+    alone = jax.grad(centre_x)(world, pixels[:3], mask[:3])
+    assert np.isfinite(np.asarray(gradient)).all()
+    np.testing.assert_allclose(gradient, alone, rtol=1e-7, atol=1e-10 * np.abs(alone).max())
+
+
 def test_refine_gradient_in_float32_is_float64s():
     """A user's trial: in float32 (JAX's default), the gradient of a refined camera's centre
     with respect to its pixels came out 73-78 % off float64's, signs flipped, once distortion
