@@ -259,10 +259,13 @@ class Camera(eqx.Module):
         xd, yd = self._distorted_normalised(px)
         dist = jnp.broadcast_to(self.dist[..., None, :], (*xd.shape, self.dist.shape[-1]))
         if self.lens == "fisheye":
-            theta_d = jnp.sqrt(xd * xd + yd * yd)
+            # the radius with a derivative on the axis too (the square root's is infinite at 0,
+            # and 0 * inf made the ray's gradient NaN at the principal point: a user's trial);
+            # there theta ~ theta_d, and sin(theta) / theta_d -> 1, whose derivative is 0
+            r2 = xd * xd + yd * yd
+            positive = r2 > 0
+            theta_d = jnp.where(positive, jnp.sqrt(jnp.where(positive, r2, 1.0)), 0.0)
             theta = _fisheye_inverse(theta_d, dist, self.dist, iterations)
-            # sin(theta) / theta_d -> 1 on the axis (theta ~ theta_d there)
-            positive = theta_d > 0
             scale = jnp.where(positive, jnp.sin(theta) / jnp.where(positive, theta_d, 1.0), 1.0)
             return jnp.stack([xd * scale, yd * scale, jnp.cos(theta)], -1)
         xy = _undistort(jnp.stack([xd, yd], -1), dist, iterations)

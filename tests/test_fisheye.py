@@ -217,6 +217,27 @@ def test_triangulation_with_views_beside_and_behind_the_image_plane():
     np.testing.assert_allclose(np.asarray(pair.points)[seen], world[seen], rtol=0, atol=1e-11)
 
 
+def test_rays_are_differentiable_at_the_principal_point():
+    """A JAX user's trial: the ray through a fisheye's principal point had NaN derivatives (the
+    radius' square root at 0), and so had a point triangulated on a camera's axis. On the axis
+    the ray is (x_d, y_d, 1) to first order: d ray_x / d u = 1 / alpha_u."""
+    cam = mc.Camera(300.0, 310.0, 640.0, 480.0, jnp.eye(3), jnp.zeros(3),
+                    dist=jnp.array([-0.02, 0.003, 0.0, 0.0]), lens="fisheye")  # fmt: skip
+    axis = jnp.array([[640.0, 480.0]])
+    J = np.asarray(jax.jacfwd(lambda p: cam.rays(p)[0])(axis))[:, 0]  # (3, 2)
+    np.testing.assert_allclose(J, [[1 / 300.0, 0.0], [0.0, 1 / 310.0], [0.0, 0.0]], atol=1e-15)
+    g = jax.grad(lambda p: cam.rays(p)[0, 0])(axis)
+    np.testing.assert_allclose(np.asarray(g)[0], [1 / 300.0, 0.0], atol=1e-15)
+    turned = mc.rodrigues(jnp.array([0.0, -0.5, 0.0]))
+    other = mc.Camera(300.0, 300.0, 640.0, 480.0, turned, -turned @ jnp.array([1.0, 0.0, 0.0]),
+                      dist=cam.dist, lens="fisheye")  # fmt: skip
+    rig = mc.Camera.stack([cam, other])
+    pixels = rig.project(jnp.array([[0.0, 0.0, 2.0]]))  # on camera 0's axis
+    gradient = jax.grad(lambda p: mc.triangulate(rig, p).points[0, 0])(pixels)
+    assert np.isfinite(np.asarray(gradient)).all()
+    check_derivatives(lambda p: mc.triangulate(rig, p).points[0], pixels, reverse=True)
+
+
 def test_a_view_outside_the_image_circle_is_hidden_not_the_point_lost():
     """A fisheye user's trial: one spurious detection outside a lens's image circle (it has no
     ray) made the whole point NaN, `views` counting it. It is hidden now, as a NaN pixel is:
