@@ -343,12 +343,7 @@ def test_the_tied_focal_lengths_jacobian_is_the_chain_rule():
         r = jnp.where(mask[0][:, None], R._unpack(p, cam.R).project(world) - pixels[0], 0.0)
         return r.T.reshape(-1)
 
-    expected = jax.jit(jax.jacfwd(plain))(y)
-    scale = np.max(np.abs(expected))
-    written = jax.jit(lambda y: R._residual_jacobian_t(y, args, free))(y)
-    np.testing.assert_allclose(written.T, expected, atol=1e-13 * scale)
-    through_jvp = jax.jit(jax.jacfwd(lambda y: R._residuals(y, args, free).reshape(-1)))(y)
-    np.testing.assert_allclose(through_jvp, expected, atol=1e-13 * scale)
+    _check_written_jacobian(plain, args, free, y)
     np.testing.assert_allclose(R._residuals(y, args, free).reshape(-1), plain(y), atol=1e-9)
 
 
@@ -618,7 +613,15 @@ def test_written_out_jacobians_equal_autodiff_of_camera_project():
         r = jnp.where(mask[:, None], R._unpack(p, cam.R).project(world) - pixels, 0.0)
         return (r * R._robust_weights(loss, jnp.sum(r * r, -1))[:, None]).T.reshape(-1)
 
-    # each under one jit: op by op, jacfwd's many small operations compile one at a time
+    _check_written_jacobian(plain, args, free, y)
+
+
+def _check_written_jacobian(plain, args, free, y):
+    """`_residual_jacobian_t` (transposed) and the residuals' custom JVP against forward-mode
+    autodiff of `plain(y)`, the residuals written without custom derivatives, at `y`; each
+    under one jit (op by op, jacfwd's many small operations compile one at a time)."""
+    from mvcalib import _refine as R
+
     expected = jax.jit(jax.jacfwd(plain))(y)
     scale = np.max(np.abs(expected))
     written = jax.jit(lambda y: R._residual_jacobian_t(y, args, free))(y)
