@@ -232,6 +232,14 @@ class Camera(eqx.Module):
         """
         xp = jnp if isinstance(world, jax.Array) else np  # (NumPy data: converted by the jit)
         world = _validate.floating("world", world, (None, 3), xp=xp)
+        try:
+            np.broadcast_shapes(self.batch_shape, world.shape[:-2])
+        except ValueError:
+            raise ValueError(
+                f"`project`: the world points' leading axes {world.shape[:-2]} do not broadcast "
+                f"with the rig's batch shape {self.batch_shape}; e.g. one set of points per "
+                "frame for every camera: `world[:, None]`, (F, 1, N, 3)."
+            ) from None
         if _buckets.applies(self, world):  # concrete arrays: one compiled program
             batch = np.broadcast_shapes(self.batch_shape, world.shape[:-2])
             quick = math.prod(batch) * world.shape[-2] <= _buckets.COMPACT

@@ -248,6 +248,14 @@ def to_global(cameras: Camera, transform: RigidTransform) -> Camera:
 
     ```
     """
+    rig, per = cameras.R.shape[:-2], transform.R.shape[:-2]
+    try:
+        np.broadcast_shapes(rig, per)
+    except ValueError:
+        raise ValueError(
+            f"`to_global`: the transforms' batch shape {per} does not broadcast with the rig's "
+            f"{rig}: pass one transform, or one per camera."
+        ) from None
     return _to_global(cameras, transform)
 
 

@@ -215,3 +215,15 @@ def test_project_on_concrete_arrays_is_one_program_and_the_traced_code(caplog):
     np.testing.assert_allclose(eager, traced, rtol=0, atol=1e-9)
     jaxpr = str(jax.make_jaxpr(lambda c, w: c.project(w))(rig, world))
     assert "pjit" not in jaxpr and "jit[" not in jaxpr  # (inlined: no nested program)
+
+
+def test_mismatched_batch_shapes_are_refused_with_the_fix():
+    """A JAX user's trial: JAX's own broadcast and matmul errors, naming no argument."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=4)
+    frames = jnp.stack([rig.world, rig.world])  # (2, N, 3) for a rig of 4
+    with pytest.raises(ValueError, match=r"leading axes \(2,\) do not broadcast .* \(4,\)"):
+        rig.cameras.project(frames)
+    assert rig.cameras.project(frames[:, None]).shape == (2, 4, 19, 2)
+    two = mc.RigidTransform(jnp.stack([jnp.eye(3)] * 2), jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"batch shape \(2,\) does not broadcast .* \(4,\)"):
+        mc.to_global(rig.cameras, two)
