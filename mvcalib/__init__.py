@@ -44,7 +44,14 @@ _EXPORTS = {
     "_second_look": ("second_look",),
     "_sharding": ("shard",),
     "_status": ("Status",),
-    "_stereo": ("StereoRectification", "essential_matrix", "fundamental_matrix", "stereo_rectify"),
+    "_stereo": (
+        "StereoRectification",
+        "essential_matrix",
+        "fundamental_matrix",
+        "stereo_rectify",
+        "undistorted",
+        "undistortion_maps",
+    ),  # fmt: skip
     "_triangulate": ("Triangulation", "reproject", "triangulate"),
     "targets": ("Target",),
 }
@@ -128,6 +135,8 @@ if typing.TYPE_CHECKING:
     from ._stereo import essential_matrix as essential_matrix
     from ._stereo import fundamental_matrix as fundamental_matrix
     from ._stereo import stereo_rectify as stereo_rectify
+    from ._stereo import undistorted as undistorted
+    from ._stereo import undistortion_maps as undistortion_maps
     from ._triangulate import Triangulation as Triangulation
     from ._triangulate import reproject as reproject
     from ._triangulate import triangulate as triangulate

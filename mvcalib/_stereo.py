@@ -1,4 +1,6 @@
-"""A calibrated pair of cameras as a stereo rig: epipolar geometry and rectification.
+"""A calibrated pair of cameras as a stereo rig: epipolar geometry and rectification; and the
+undistorted image of any camera (`undistorted`, `undistortion_maps`: OpenCV's new camera matrix
+and `initUndistortRectifyMap`).
 
 `stereo_rectify` is OpenCV's `stereoRectify` (Bouguet's method: each camera turned by half the
 rotation between them, then both about the baseline until their image rows, or columns, are
@@ -13,6 +15,7 @@ Written in JAX: differentiable, and usable inside the caller's `jit`.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -21,7 +24,10 @@ from . import _buckets
 from ._camera import Camera, undistort_points
 from ._rotation import hat, nearest_rotation, rodrigues
 
-__all__ = ["StereoRectification", "essential_matrix", "fundamental_matrix", "stereo_rectify"]
+__all__ = [
+    "StereoRectification", "essential_matrix", "fundamental_matrix", "stereo_rectify",
+    "undistorted", "undistortion_maps",
+]  # fmt: skip
 
 
 def _pair(cameras: Camera, what: str) -> Camera:
@@ -166,22 +172,140 @@ class StereoRectification(eqx.Module):
 
         ```
         """
-        width, height = self.image_size
-        v, u = np.mgrid[0:height, 0:width].astype(_dtype(self.cameras))
-        grid = np.stack([u.ravel(), v.ravel()], -1)
-        xy = _maps(self.original, self.cameras, self.R, grid)
-        xy = np.asarray(xy, np.float32).reshape(2, height, width, 2)
-        return xy[..., 0], xy[..., 1]
+        return undistortion_maps(self.original, self.cameras, self.image_size)
 
 
 def _dtype(cameras: Camera):
     return np.result_type(cameras.alpha_u.dtype, np.float32)
 
 
+def undistortion_maps(
+    camera: Camera, new: Camera, image_size: tuple[int, int]
+) -> tuple[Float[Array, "*batch H W"], Float[Array, "*batch H W"]]:
+    """`(map_x, map_y)`, float32 `(*batch, height, width)`: for every pixel of the image `new`
+    sees, where it lies in `camera`'s image (OpenCV's `initUndistortRectifyMap(K, D, R, P)` with
+    `CV_32FC1`, `cv2.fisheye`'s for a fisheye; `R` the turn from `camera` to `new`, `P` `new.K`).
+    `new` is a pinhole without distortion at `camera`'s centre: `undistorted(camera, ...)`, or a
+    rectified camera (`StereoRectification.maps`). Resample with `cv2.remap(image, map_x,
+    map_y, cv2.INTER_LINEAR)`, or `skimage.transform.warp(image, np.stack([map_y, map_x]),
+    order=1)`.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> cam = mc.Camera(800.0, 805.0, 640.0, 360.0, jnp.eye(3), jnp.zeros(3),
+    ...                 dist=jnp.array([-0.2, 0.05, 0.0, 0.0, 0.0]))
+    >>> new = mc.undistorted(cam, (1280, 720))
+    >>> map_x, map_y = mc.undistortion_maps(cam, new, (1280, 720))
+    >>> map_x.shape, map_x.dtype
+    ((720, 1280), dtype('float32'))
+
+    ```
+    """
+    width, height = _image_size(image_size)
+    batch = camera.batch_shape
+    one = lambda c: jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), c)  # noqa: E731
+    v, u = np.mgrid[0:height, 0:width].astype(_dtype(new))
+    grid = np.stack([u.ravel(), v.ravel()], -1)
+    xy = np.asarray(_maps(one(camera), one(new), grid), np.float32)
+    xy = xy.reshape(*batch, height, width, 2)
+    return xy[..., 0], xy[..., 1]
+
+
+def undistorted(
+    camera: Camera, image_size: tuple[int, int], *, alpha: float = 0.0, fov_scale: float = 1.0
+) -> Camera:
+    """The pinhole camera without distortion, at `camera`'s pose, whose image shows what
+    `camera`'s does undistorted (resample it with `undistortion_maps`): OpenCV's new camera
+    matrix, `getOptimalNewCameraMatrix(K, D, size, alpha)` for a pinhole (`alpha` 0: every pixel
+    from inside the image, no black border; 1: every original pixel kept; between, a mix), and
+    `cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(K, D, size, I, balance=alpha,
+    fov_scale=fov_scale)` for a fisheye. `camera` may be a rig.
+
+    **Example:**
+
+    ```python
+    >>> import jax.numpy as jnp, mvcalib as mc
+    >>> cam = mc.Camera(800.0, 805.0, 640.0, 360.0, jnp.eye(3), jnp.zeros(3),
+    ...                 dist=jnp.array([-0.2, 0.05, 0.0, 0.0, 0.0]))
+    >>> new = mc.undistorted(cam, (1280, 720))  # alpha=0: no black border
+    >>> new.lens, bool(new.dist.any()), new.K.shape
+    ('pinhole', False, (3, 3))
+
+    ```
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"`undistorted` takes a Camera; got {camera!r}.")
+    size = _image_size(image_size)
+    number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
+    if not number or not 0.0 <= float(alpha) <= 1.0:
+        raise ValueError(f"`alpha` is a number in [0, 1]; got {alpha!r}.")
+    if not (isinstance(fov_scale, (int, float, np.floating)) and fov_scale > 0):
+        raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
+    dtype = _dtype(camera)
+    batch = camera.batch_shape
+    flat = jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), camera)
+    K = _new_K(
+        flat, np.asarray(size, dtype), np.asarray(alpha, dtype), np.asarray(fov_scale, dtype)
+    )
+    K = K.reshape(*batch, 3, 3)
+    return Camera(
+        alpha_u=K[..., 0, 0], alpha_v=K[..., 1, 1], u0=K[..., 0, 2], v0=K[..., 1, 2],
+        skew=jnp.zeros_like(K[..., 0, 0]), R=camera.R, t=camera.t,
+    )  # fmt: skip
+
+
 @_buckets.eager
-def _maps(original, rectified, R, grid):
-    """The original pixels `(2, N, 2)` of the rectified pixels `grid` `(N, 2)` of both cameras."""
-    K_inv = jnp.linalg.inv(rectified.K)  # (2, 3, 3)
+def _new_K(cameras, size, alpha, fov_scale):
+    """`undistorted`'s `K` `(n, 3, 3)` of the cameras `(n,)`."""
+    n = cameras.alpha_u.shape[0]
+    dtype = cameras.R.dtype
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
+    if cameras.lens == "fisheye":
+        focal, c = _fisheye_intrinsics(cameras, eye, size, alpha, fov_scale)
+    else:
+        # OpenCV's getOptimalNewCameraMatrix: the largest rectangle inside and the smallest
+        # outside the undistorted image (9 x 9 points of the border, in normalised coordinates)
+        # each mapped onto the image, mixed by alpha
+        last = size - 1
+        steps = jnp.linspace(0.0, 1.0, 9, dtype=dtype)
+        v, u = jnp.meshgrid(steps * last[1], steps * last[0], indexing="ij")
+        border = jnp.stack([u.ravel(), v.ravel()], -1)
+        xy = _through(cameras, eye, border, 1.0, jnp.zeros((n, 2), dtype)).reshape(n, 9, 9, 2)
+        inner, outer = _rectangles(xy)
+        fit = lambda r: (last / (r[:, 2:] - r[:, :2]), -(last / (r[:, 2:] - r[:, :2])) * r[:, :2])  # noqa: E731
+        (f0, c0), (f1, c1) = fit(inner), fit(outer)
+        focal, c = f0 * (1 - alpha) + f1 * alpha, c0 * (1 - alpha) + c1 * alpha
+    zero, one = jnp.zeros((n,), dtype), jnp.ones((n,), dtype)
+    return jnp.stack(
+        [
+            jnp.stack([focal[:, 0], zero, c[:, 0]], -1),
+            jnp.stack([zero, focal[:, 1], c[:, 1]], -1),
+            jnp.stack([zero, zero, one], -1),
+        ],
+        1,
+    )
+
+
+def _image_size(image_size) -> tuple[int, int]:
+    try:
+        size = tuple(image_size)
+    except TypeError:
+        size = ()
+    if len(size) != 2 or not all(
+        isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n > 0 for n in size
+    ):
+        raise ValueError(f"`image_size` is (width, height) in pixels; got {image_size!r}.")
+    return int(size[0]), int(size[1])
+
+
+@_buckets.eager
+def _maps(original, new, grid):
+    """The original pixels `(n, N, 2)` of the pixels `grid` `(N, 2)` of the new cameras `(n,)`
+    (at the original cameras' centres)."""
+    R = new.R @ jnp.swapaxes(original.R, -1, -2)  # original camera coordinates to new ones
+    K_inv = jnp.linalg.inv(new.K)  # (n, 3, 3)
     rays = jnp.concatenate([grid, jnp.ones_like(grid[:, :1])], -1)  # (N, 3)
     directions = jnp.einsum("cji,cjk,nk->cni", R, K_inv, rays)  # original camera coordinates
     unposed = eqx.tree_at(
@@ -249,15 +373,7 @@ def stereo_rectify(
     ```
     """
     cameras = _pair(cameras, "stereo_rectify")
-    try:
-        size = tuple(image_size)
-    except TypeError:
-        size = ()
-    if len(size) != 2 or not all(
-        isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n > 0 for n in size
-    ):
-        raise ValueError(f"`image_size` is (width, height) in pixels; got {image_size!r}.")
-    size = (int(size[0]), int(size[1]))
+    size = _image_size(image_size)
     if alpha is not None:
         number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
         if not number or not 0.0 <= float(alpha) <= 1.0:
@@ -315,7 +431,8 @@ def _rectify(cameras, size, alpha, zero_disparity, fov_scale):
     baseline = jnp.where(vertical, t[1], t[0])
 
     if fisheye:
-        f, c = _fisheye_intrinsics(cameras, rotations, size, alpha, fov_scale)
+        focal, c = _fisheye_intrinsics(cameras, rotations, size, alpha, fov_scale)
+        f = jnp.min(focal[:, 1])  # (OpenCV: the smaller vertical one, for both)
     else:
         # one focal length (OpenCV: the mean of the originals' vertical ones, horizontal for a
         # vertical pair) and the principal points that centre the undistorted image corners
@@ -336,26 +453,7 @@ def _rectify(cameras, size, alpha, zero_disparity, fov_scale):
     v, u = jnp.meshgrid(steps * ny, steps * nx, indexing="ij")
     border = jnp.stack([u.ravel(), v.ravel()], -1)  # row-major, 9 x 9
     xy = _through(cameras, rotations, border, f, c).reshape(2, 9, 9, 2)
-    # (a fisheye's border points beyond 90 degrees of the rectified axis are NaN: they bound
-    # nothing)
-    inner = jnp.stack(
-        [
-            jnp.nanmax(xy[:, :, 0, 0], 1),  # left: the first column's largest x
-            jnp.nanmax(xy[:, 0, :, 1], 1),  # top
-            jnp.nanmin(xy[:, :, -1, 0], 1),  # right
-            jnp.nanmin(xy[:, -1, :, 1], 1),  # bottom
-        ],
-        -1,
-    )  # (2, 4): x0, y0, x1, y1
-    outer = jnp.stack(
-        [
-            jnp.nanmin(xy[..., 0], (1, 2)),
-            jnp.nanmin(xy[..., 1], (1, 2)),
-            jnp.nanmax(xy[..., 0], (1, 2)),
-            jnp.nanmax(xy[..., 1], (1, 2)),
-        ],
-        -1,
-    )
+    inner, outer = _rectangles(xy)
 
     def zoom(rect, pick):
         x0, y0, x1, y1 = (rect[:, i] for i in range(4))
@@ -419,6 +517,31 @@ def _rectify(cameras, size, alpha, zero_disparity, fov_scale):
     return rectified, cameras, rotations, P, Q, roi, vertical
 
 
+def _rectangles(xy):
+    """OpenCV's `icvGetRectangles` of the border grids `xy (n, 9, 9, 2)` (rows of points): the
+    largest rectangle inside and the smallest outside each, `(n, 4)` as `x0, y0, x1, y1`. (A
+    fisheye's border points beyond 90 degrees of the axis are NaN: they bound nothing.)"""
+    inner = jnp.stack(
+        [
+            jnp.nanmax(xy[:, :, 0, 0], 1),  # left: the first column's largest x
+            jnp.nanmax(xy[:, 0, :, 1], 1),  # top
+            jnp.nanmin(xy[:, :, -1, 0], 1),  # right
+            jnp.nanmin(xy[:, -1, :, 1], 1),  # bottom
+        ],
+        -1,
+    )
+    outer = jnp.stack(
+        [
+            jnp.nanmin(xy[..., 0], (1, 2)),
+            jnp.nanmin(xy[..., 1], (1, 2)),
+            jnp.nanmax(xy[..., 0], (1, 2)),
+            jnp.nanmax(xy[..., 1], (1, 2)),
+        ],
+        -1,
+    )
+    return inner, outer
+
+
 def _through(cameras, rotations, pixels, f, c):
     """Original `pixels` `(M, 2)` of both cameras, undistorted, turned by `rotations` and seen
     by pinholes of focal length `f` and principal points `c` `(2, 2)`: `(2, M, 2)`; NaN where a
@@ -436,11 +559,11 @@ def _through(cameras, rotations, pixels, f, c):
 
 
 def _fisheye_intrinsics(cameras, rotations, size, balance, fov_scale):
-    """The rectified fisheye pair's focal length and principal points `(2, 2)`, as
-    `cv2.fisheye.stereoRectify` makes them: each camera's from
-    `estimateNewCameraMatrixForUndistortRectify` (the midpoints of the image's edges, turned
-    and undistorted, fitted by a focal length between the one that keeps all of them, `balance`
-    1, and the one that fills the image, 0, over `fov_scale`), then the smaller vertical one."""
+    """Each fisheye's new pinhole focal lengths `(n, 2)` and principal point `(n, 2)`, as
+    `cv2.fisheye.estimateNewCameraMatrixForUndistortRectify` makes them (the midpoints of the
+    image's edges, turned by `rotations` and undistorted, fitted by a focal length between the
+    one that keeps all of them, `balance` 1, and the one that fills the image, 0, over
+    `fov_scale`)."""
     w, h = size[0], size[1]
     midpoints = jnp.stack(
         [
@@ -450,7 +573,8 @@ def _fisheye_intrinsics(cameras, rotations, size, balance, fov_scale):
             jnp.stack([0.0 * w, jnp.floor(h / 2)]),
         ]
     )
-    xy = _through(cameras, rotations, midpoints, 1.0, jnp.zeros((2, 2), w.dtype))  # (2, 4, 2)
+    origin = jnp.zeros((rotations.shape[0], 2), w.dtype)
+    xy = _through(cameras, rotations, midpoints, 1.0, origin)  # (n, 4, 2)
     ratio = (cameras.alpha_u / cameras.alpha_v)[:, None]  # (to square pixels, and back)
     xy = xy.at[..., 1].multiply(ratio)
     centre = xy.mean(1)  # (2, 2)
@@ -465,6 +589,7 @@ def _fisheye_intrinsics(cameras, rotations, size, balance, fov_scale):
     balance = jnp.clip(jnp.where(balance >= 0, balance, 0.0), 0.0, 1.0)
     f = balance * reach.min(0) + (1 - balance) * reach.max(0)
     f = f / jnp.where(fov_scale > 0, fov_scale, 1.0)
-    c = -centre * f[:, None] + jnp.stack([jnp.full((2,), w), h * ratio[:, 0]], -1) / 2
+    n = centre.shape[0]
+    c = -centre * f[:, None] + jnp.stack([jnp.full((n,), w), h * ratio[:, 0]], -1) / 2
     c = c.at[:, 1].divide(ratio[:, 0])
-    return jnp.min(f / ratio[:, 0]), c
+    return jnp.stack([f, f / ratio[:, 0]], -1), c  # (n, 2) focal lengths, (n, 2) centres

@@ -262,3 +262,56 @@ def test_bad_input_is_refused_with_the_reason():
         mc.stereo_rectify(wide, SIZE)
     traced = jax.jit(lambda c: mc.stereo_rectify(c, SIZE).P)(wide)
     assert np.isnan(np.asarray(traced)).any()
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.3, 1.0])
+def test_undistorted_is_opencvs_new_camera_matrix(alpha):
+    """`undistorted`: `cv2.getOptimalNewCameraMatrix` for a pinhole (to 1e-6 px with a mild
+    lens: with a strong one OpenCV's 5-iteration undistortion of the image corners is itself
+    0.06 px off its model, and mvcalib's is not), `estimateNewCameraMatrixForUndistortRectify`
+    for a fisheye (to 1e-10 px); `undistortion_maps` is `initUndistortRectifyMap` from that K."""
+    K = np.array([[800.0, 0, 645], [0, 805, 355], [0, 0, 1]])
+    D = np.array([-0.02, 0.005, 0.0001, -0.00005, 0.0])
+    camera = mc.Camera.from_matrices(K, np.eye(3), np.zeros(3), dist=D)
+    new = mc.undistorted(camera, SIZE, alpha=alpha)
+    expected, _ = cv2.getOptimalNewCameraMatrix(K, D, SIZE, alpha)
+    assert new.lens == "pinhole" and not np.asarray(new.dist).any()
+    assert np.abs(np.asarray(new.K) - expected).max() < 1e-6
+    map_x, map_y = mc.undistortion_maps(camera, new, SIZE)
+    cv_x, cv_y = cv2.initUndistortRectifyMap(K, D, None, np.asarray(new.K), SIZE, cv2.CV_32FC1)
+    assert np.abs(map_x - cv_x).max() < 1e-3 and np.abs(map_y - cv_y).max() < 1e-3
+    cameras, Ks, Ds, _, _ = _fisheye_pair(0)
+    new = mc.undistorted(cameras, SIZE, alpha=alpha, fov_scale=1.2)  # a rig of two
+    for i in range(2):
+        expected = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
+            Ks[i], Ds[i], SIZE, np.eye(3), balance=alpha, fov_scale=1.2
+        )
+        assert np.abs(np.asarray(new.K[i]) - expected).max() < 1e-10
+    map_x, map_y = mc.undistortion_maps(cameras, new, SIZE)
+    assert map_x.shape == (2, SIZE[1], SIZE[0])
+    cv_x, cv_y = cv2.fisheye.initUndistortRectifyMap(
+        Ks[1], Ds[1], np.eye(3), np.asarray(new.K[1]), SIZE, cv2.CV_32FC1
+    )
+    assert np.abs(map_x[1] - cv_x).max() < 1e-3 and np.abs(map_y[1] - cv_y).max() < 1e-3
+
+
+def test_undistorted_with_alpha_0_shows_only_the_image():
+    """A strong barrel lens: with `alpha=0` every pixel of the undistorted image comes from
+    inside the original one (the map of its border within the image, to rounding), and a world
+    point's undistorted pixel is where the new pinhole projects it."""
+    K = np.array([[800.0, 0, 645], [0, 805, 355], [0, 0, 1]])
+    D = np.array([-0.2, 0.05, 0.001, -0.0005, 0.0])
+    camera = mc.Camera.from_matrices(K, np.eye(3), np.zeros(3), dist=D)
+    new = mc.undistorted(camera, SIZE)
+    map_x, map_y = mc.undistortion_maps(camera, new, SIZE)
+    # (OpenCV's rule samples the border 9 x 9 times: between, it bulges by ~1e-3 px)
+    border = np.concatenate([map_x[[0, -1]].ravel(), map_x[:, [0, -1]].ravel()])
+    assert border.min() > -0.01 and border.max() < SIZE[0] - 1 + 0.01
+    border = np.concatenate([map_y[[0, -1]].ravel(), map_y[:, [0, -1]].ravel()])
+    assert border.min() > -0.01 and border.max() < SIZE[1] - 1 + 0.01
+    world = np.random.default_rng(2).uniform([-0.3, -0.2, 1.0], [0.3, 0.2, 1.5], (20, 3))
+    ideal = np.asarray(mc.undistort_points(camera, camera.project(world)))
+    seen = np.asarray(new.project(world))
+    scale = np.asarray(new.K)[[0, 1], [0, 1]] / K[[0, 1], [0, 1]]
+    centre = np.asarray(new.K)[:2, 2]
+    np.testing.assert_allclose(seen, (ideal - K[:2, 2]) * scale + centre, atol=1e-9)
