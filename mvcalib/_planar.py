@@ -510,6 +510,18 @@ def _fisheye_seed(world, plane, pixels, mask, image_size, rcond):
     return jnp.asarray(np.stack(H)), camera, status, jnp.asarray(max(condition))
 
 
+def _without_a_camera(status, camera: Camera):
+    """`status` with its OK views DEGENERATE where the calibrated views' camera is none (a focal
+    length not finite and positive): the views together do not determine one (a fisheye user's
+    trial: pixels given as normalised coordinates came back OK with alpha_v < 0, the refinement
+    unconverged). The views' cameras share one lens, a pose each."""
+    ok = (np.asarray(status) == Status.OK).reshape(-1)
+    focal = np.asarray([camera.alpha_u, camera.alpha_v]).reshape(2, -1)[:, ok]
+    if (np.isfinite(focal) & (focal > 0)).all():
+        return status
+    return jnp.asarray(np.where(ok.reshape(np.shape(status)), Status.DEGENERATE, status), jnp.int32)
+
+
 def _nan_where(failed, camera: Camera) -> Camera:
     expand = lambda x: failed.reshape(failed.shape + (1,) * (x.ndim - failed.ndim))  # noqa: E731
     return jax.tree_util.tree_map(lambda x: jnp.where(expand(x), jnp.nan, x), camera)
@@ -959,6 +971,8 @@ def calibrate_planar(
         _, status, condition, iterations, result, closed, camera, report, rms, poor = again
     if dropped.any():
         status = np.where(dropped, Status.POOR_FIT, np.asarray(status)).astype(np.int32)
+    if _validate.is_concrete(status, camera.alpha_u, camera.alpha_v):  # (called eagerly)
+        status = _without_a_camera(status, camera)
     if len(mask) != V:  # the padded views cut off
         H, status, camera, closed, report = (
             _buckets.first(x, V, axis=0) for x in (H, status, camera, closed, report)

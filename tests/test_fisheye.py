@@ -455,6 +455,19 @@ def test_planar_fisheye_calibration_equals_opencv_fisheye():
     assert np.all(np.abs(found - truth) < [1.0, 1.0, 0.5, 0.5])  # px
 
 
+def test_a_planar_calibration_without_a_camera_is_not_ok():
+    """A fisheye user's trial: pixels passed as normalised coordinates ((px - c) / f) gave
+    alpha_v < 0 and an unconverged refinement, every view OK. Now none is: DEGENERATE (the views
+    together determine no camera), or POOR_FIT where a view was left out on the way."""
+    pixels, mask = board_views(20, 70.0, 88.0, seed=0)
+    out = mc.calibrate_planar(BOARD, (pixels - [640, 480]) / 330, mask, lens="fisheye",
+                              image_size=IMAGE)  # fmt: skip
+    status = np.asarray(out.status)
+    assert not bool(out.converged) and not out.ok.any()
+    assert np.isin(status, [mc.Status.DEGENERATE, mc.Status.POOR_FIT]).all()
+    assert (status == mc.Status.DEGENERATE).sum() > len(status) // 2
+
+
 def test_planar_fisheye_calibration_takes_rays_beyond_90_degrees():
     pixels, mask = board_views(20, 80.0, 95.0, seed=1)
     lens = mc.Camera(R=np.eye(3), t=np.zeros(3), lens="fisheye", **LENS)
