@@ -71,6 +71,12 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
     """`x` as a floating JAX array (a NumPy array with `xp=np`); integers are promoted, everything
     else is refused."""
     if isinstance(x, (list, tuple)):
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x)):
+            # (jax.jit made every number of a Python list an argument of its own)
+            raise TypeError(
+                f"`{name}` is a Python list of traced numbers: pass an array (`jnp.asarray` of "
+                "the list outside the transformed function) to `jax.jit`, `grad` or `vmap`."
+            )
         try:
             x = np.asarray(x)
         except ValueError as e:  # ragged nested lists

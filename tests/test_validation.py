@@ -223,3 +223,13 @@ def test_misused_arguments_say_what_they_take(rig):
     for call, error, words in _misuses(rig):
         with pytest.raises(error, match=words):
             call()
+
+
+def test_python_lists_under_jit_are_refused_with_the_fix():
+    """A JAX user's trial: `jax.jit(mc.calibrate)` of Python lists (each number a traced
+    argument) failed with JAX's TracerArrayConversionError, naming nothing; eagerly, lists work."""
+    rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=3)
+    lists = [np.asarray(x).tolist() for x in (rig.world, rig.pixels, rig.mask)]
+    assert bool(mc.calibrate(*lists).ok.all())
+    with pytest.raises(TypeError, match="`world` is a Python list of traced numbers"):
+        jax.jit(mc.calibrate)(*lists)
