@@ -39,6 +39,12 @@ def check_lens(lens) -> None:
         raise ValueError(f"`lens` is one of {tuple(LENSES)}; got {lens!r}.")
 
 
+def flat_rig(camera: Camera) -> Camera:
+    """`camera` with its batch axes as one leading camera axis (a single camera: a rig of one)."""
+    batch = camera.batch_shape
+    return jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), camera)
+
+
 def lens_of(dist) -> str:
     """The lens of a camera with these distortion coefficients `(..., 5)` or `(..., 4)`: inside
     the library's kernels, where cameras are rebuilt from packed parameter vectors, the number
@@ -233,7 +239,7 @@ class Camera(eqx.Module):
         xp = jnp if isinstance(world, jax.Array) else np  # (NumPy data: converted by the jit)
         world = _validate.floating("world", world, (None, 3), xp=xp)
         try:
-            np.broadcast_shapes(self.batch_shape, world.shape[:-2])
+            batch = np.broadcast_shapes(self.batch_shape, world.shape[:-2])
         except ValueError:
             raise ValueError(
                 f"`project`: the world points' leading axes {world.shape[:-2]} do not broadcast "
@@ -241,7 +247,6 @@ class Camera(eqx.Module):
                 "frame for every camera: `world[:, None]`, (F, 1, N, 3)."
             ) from None
         if _buckets.applies(self, world):  # concrete arrays: one compiled program
-            batch = np.broadcast_shapes(self.batch_shape, world.shape[:-2])
             quick = math.prod(batch) * world.shape[-2] <= _buckets.COMPACT
             return _compiled_projection(self, world, quick=quick)
         return _projection(self, world)  # (traced: part of the caller's program)

@@ -18,7 +18,15 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _buckets, _sharding, _small, _validate
-from ._camera import LENSES, Camera, _fisheye_polynomial, lens_of, unit_camera, usable_rig
+from ._camera import (
+    LENSES,
+    Camera,
+    _fisheye_polynomial,
+    flat_rig,
+    lens_of,
+    unit_camera,
+    usable_rig,
+)
 from ._report import ReprojectionReport, masked_rms, residual_report, residual_rms
 from ._rotation import exp_and_left_jacobian
 
@@ -947,7 +955,7 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps)
     batch = cameras.batch_shape
     n = world.shape[-2]
     flat = lambda x, tail: jnp.broadcast_to(x, (*batch, *tail)).reshape(-1, *tail)  # noqa: E731
-    cams = jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), cameras)
+    cams = flat_rig(cameras)
     kernel = functools.partial(
         _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
     )

@@ -15,13 +15,12 @@ Written in JAX: differentiable, and usable inside the caller's `jit`.
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets
-from ._camera import Camera, undistort_points
+from ._camera import Camera, flat_rig, undistort_points
 from ._rotation import hat, nearest_rotation, rodrigues
 
 __all__ = [
@@ -204,12 +203,10 @@ def undistortion_maps(
     ```
     """
     width, height = _image_size(image_size)
-    batch = camera.batch_shape
-    one = lambda c: jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), c)  # noqa: E731
     v, u = np.mgrid[0:height, 0:width].astype(_dtype(new))
     grid = np.stack([u.ravel(), v.ravel()], -1)
-    xy = np.asarray(_maps(one(camera), one(new), grid), np.float32)
-    xy = xy.reshape(*batch, height, width, 2)
+    xy = np.asarray(_maps(flat_rig(camera), flat_rig(new), grid), np.float32)
+    xy = xy.reshape(*camera.batch_shape, height, width, 2)
     return xy[..., 0], xy[..., 1]
 
 
@@ -238,18 +235,10 @@ def undistorted(
     if not isinstance(camera, Camera):
         raise TypeError(f"`undistorted` takes a Camera; got {camera!r}.")
     size = _image_size(image_size)
-    number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
-    if not number or not 0.0 <= float(alpha) <= 1.0:
-        raise ValueError(f"`alpha` is a number in [0, 1]; got {alpha!r}.")
-    if not (isinstance(fov_scale, (int, float, np.floating)) and fov_scale > 0):
-        raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
     dtype = _dtype(camera)
-    batch = camera.batch_shape
-    flat = jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[len(batch) :]), camera)
-    K = _new_K(
-        flat, np.asarray(size, dtype), np.asarray(alpha, dtype), np.asarray(fov_scale, dtype)
-    )
-    K = K.reshape(*batch, 3, 3)
+    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=False)
+    K = _new_K(flat_rig(camera), np.asarray(size, dtype), scaling, fov)
+    K = K.reshape(*camera.batch_shape, 3, 3)
     return Camera(
         alpha_u=K[..., 0, 0], alpha_v=K[..., 1, 1], u0=K[..., 0, 2], v0=K[..., 1, 2],
         skew=jnp.zeros_like(K[..., 0, 0]), R=camera.R, t=camera.t,
@@ -286,6 +275,20 @@ def _new_K(cameras, size, alpha, fov_scale):
         ],
         1,
     )
+
+
+def _scalings(alpha, fov_scale, dtype, *, optional: bool):
+    """`alpha` (in [0, 1]; where `optional`, None too: -1, OpenCV's "no scaling") and
+    `fov_scale` (positive) checked, as arrays of `dtype`."""
+    if not (optional and alpha is None):
+        number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
+        if not number or not 0.0 <= float(alpha) <= 1.0:
+            what = "None or a number" if optional else "a number"
+            raise ValueError(f"`alpha` is {what} in [0, 1]; got {alpha!r}.")
+    if not (isinstance(fov_scale, (int, float, np.floating)) and fov_scale > 0):
+        raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
+    scaling = -1.0 if alpha is None else alpha
+    return np.asarray(scaling, dtype), np.asarray(fov_scale, dtype)
 
 
 def _image_size(image_size) -> tuple[int, int]:
@@ -374,17 +377,10 @@ def stereo_rectify(
     """
     cameras = _pair(cameras, "stereo_rectify")
     size = _image_size(image_size)
-    if alpha is not None:
-        number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
-        if not number or not 0.0 <= float(alpha) <= 1.0:
-            raise ValueError(f"`alpha` is None or a number in [0, 1]; got {alpha!r}.")
     if not isinstance(zero_disparity, (bool, np.bool_)):
         raise TypeError(f"`zero_disparity` is True or False; got {zero_disparity!r}.")
     dtype = _dtype(cameras)
-    scaling = np.asarray(-1.0 if alpha is None else alpha, dtype)
-    if not (isinstance(fov_scale, (int, float, np.floating)) and fov_scale > 0):
-        raise ValueError(f"`fov_scale` is a positive number; got {fov_scale!r}.")
-    fov = np.asarray(fov_scale, dtype)
+    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=True)
     out = _rectify(cameras, np.asarray(size, dtype), scaling, np.asarray(zero_disparity), fov)
     rect = StereoRectification(*out, image_size=size)
     P = rect.P
