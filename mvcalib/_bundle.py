@@ -841,7 +841,7 @@ def bundle_adjust(
             f"`pixels` must be (C, N, 2) tracks for the rig's {cameras.batch_shape} cameras; "
             f"got {pixels.shape}."
         )
-    seen = np.all(np.isfinite(pixels), -1) & np.asarray(finite_cameras(cameras))[:, None]
+    seen = _validate.finite_pixels(pixels) & np.asarray(finite_cameras(cameras))[:, None]
     if mask is not None:
         seen &= np.asarray(mask, dtype=bool)
         _validate.check_hidden_non_finite(pixels, mask)

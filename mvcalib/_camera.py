@@ -285,6 +285,16 @@ class Camera(eqx.Module):
         ray = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], -1)
         return ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
 
+    def _in_image_circle(self, u, v) -> Bool[Array, "*batch N"]:
+        """Whether the pixels `(u, v)` (each `(..., N)`) of a fisheye lie inside its image
+        circle, the radius its polynomial's principal branch reaches: where `rays` is finite
+        (`_fisheye_angle`'s test, without the rays' Newton steps)."""
+        yd = (v - self.v0[..., None]) / self.alpha_v[..., None]
+        xd = (u - self.u0[..., None] - self.skew[..., None] * yd) / self.alpha_u[..., None]
+        limit = _fisheye_limit(self.dist)[..., None]
+        reach = _fisheye_polynomial(limit, self.dist[..., None, :])[0]
+        return xd * xd + yd * yd <= reach * reach
+
     def _distorted_normalised(self, px):
         """`K^-1` of pixels `(..., N, 2)`: the distorted normalised coordinates `(x_d, y_d)`."""
         yd = (px[..., 1] - self.v0[..., None]) / self.alpha_v[..., None]

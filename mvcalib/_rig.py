@@ -1426,7 +1426,7 @@ def calibrate_rig(
         )
     C, F = pixels.shape[:2]
     if mask is None:
-        mask = xp.all(xp.isfinite(pixels), -1)
+        mask = _validate.finite_pixels(pixels, xp)
     mask = _validate.boolean_mask("mask", mask, (C, F, N), xp=xp)
     if tuple(mask.shape) != (C, F, N):
         raise ValueError(f"`mask` must have shape {(C, F, N)}; got {tuple(mask.shape)}.")

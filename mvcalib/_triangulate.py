@@ -239,15 +239,13 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     # that, as in pixel units, a pixel of noise counts the same in every camera.
     # Hidden pixels are replaced before any arithmetic, so that NaN in them reaches neither the
     # points nor their derivatives.
+    # (a fisheye's pixel outside its image circle, beyond its polynomial's fold, has no ray:
+    # hidden, as a NaN pixel is; it made the point NaN, whatever the other views saw: a fisheye
+    # user's trial)
     m = mask & jnp.isfinite(u) & jnp.isfinite(v)
     fisheye = cameras.lens == "fisheye"
     if fisheye:
-        # a pixel outside the lens's image circle (beyond its polynomial's fold) has no ray:
-        # hidden, as a NaN pixel is (it made the point NaN, whatever the other views saw: a
-        # fisheye user's trial); found on the pixels as given, then replaced as the others
-        safe = [jnp.where(m, x, c[:, None]) for x, c in ((u, cameras.u0), (v, cameras.v0))]
-        rays = jax.lax.stop_gradient(cameras.rays(jnp.stack(safe, -1)))
-        m = m & jnp.all(jnp.isfinite(rays), -1)
+        m &= jax.lax.stop_gradient(cameras._in_image_circle(u, v))  # noqa: SLF001
     pu = jnp.where(m, u, cameras.u0[:, None])
     pv = jnp.where(m, v, cameras.v0[:, None])
     if fisheye:  # unit rays, beyond 90 degrees too
@@ -399,7 +397,7 @@ def triangulate(
         raise ValueError(f"`max_rms` is a positive number of pixels; got {max_rms!r}.")
     given = mask is not None
     if mask is None:
-        mask = xp.all(xp.isfinite(pixels), -1)
+        mask = _validate.finite_pixels(pixels, xp)
     mask = _validate.boolean_mask("mask", mask, pixels.shape[:-1], xp=xp)
     if host:
         _validate.check_placeholders(pixels, mask)
