@@ -384,15 +384,19 @@ def _modelled(fn, options):
     return modelled
 
 
-def _spd_solve(M, B):
-    """`M^-1 B` for a symmetric `M (n, n)` and `B (n, m)`; NaN unless `M` is positive definite.
+def _eliminate(M, B, tol):
+    """`(X, definite)`: `M X = B` for a square `M (n, n)` and `B (n, m)`, by Gauss–Jordan
+    elimination without pivoting (which a definite matrix does not need), a loop of `n` rank-one
+    updates of `[M | B]`, not LAPACK: under `vmap` jaxlib runs a batch of LAPACK factorisations
+    through XLA's CPU thread pool, and a rig split over host devices deadlocked there
+    (`docs/scaling.md`): each device's program held a worker and waited for sub-tasks queued
+    behind the others'.
 
-    Gauss–Jordan elimination without pivoting (which a definite matrix does not need), a loop of
-    `n` rank-one updates of `[M | B]`, not LAPACK: under `vmap` jaxlib runs a batch of LAPACK
-    factorisations through XLA's CPU thread pool, and a rig split over host devices deadlocked
-    there (`docs/scaling.md`): each device's program held a worker and waited for sub-tasks
-    queued behind the others'. `M` is definite where every pivot (the `D` of its `L D L^T`) is
-    positive.
+    A pivot no larger than `tol` in magnitude is dropped: its unknown is 0 and its row takes no
+    part. In a positive semidefinite `M` that is where the matrix is singular to within `tol`
+    (a pivot, the `D` of `M`'s `L D L^T`, is at least `M`'s smallest eigenvalue, and a zero
+    pivot's row is zero), so that a singular system gets one of its solutions, finite, rather
+    than `inf`. `definite`: whether every pivot was positive and none was dropped.
     """
     n = M.shape[-1]
 
@@ -401,14 +405,53 @@ def _spd_solve(M, B):
         e = jax.nn.one_hot(k, n, dtype=A.dtype)
         row = e @ A
         pivot = row[:n] @ e
-        row = row / pivot
+        kept = jnp.abs(pivot) > tol
+        row = jnp.where(kept, row / jnp.where(kept, pivot, 1.0), 0.0)
         A = jnp.where(e[:, None] > 0, row, A - jnp.outer(A[:, :n] @ e, row))
-        return A, definite & (pivot > 0)
+        return A, definite & kept & (pivot > 0)
 
     A, definite = jax.lax.fori_loop(
         0, n, eliminate, (jnp.concatenate([M, B], axis=-1), jnp.asarray(True))
     )
-    return jnp.where(definite, A[:, n:], jnp.nan)
+    return A[:, n:], definite
+
+
+def _spd_solve(M, B):
+    """`M^-1 B` for a symmetric `M (n, n)` and `B (n, m)`; NaN unless `M` is positive definite
+    (every pivot positive), by `_eliminate`."""
+    X, definite = _eliminate(M, B, 0.0)
+    return jnp.where(definite, X, jnp.nan)
+
+
+class _Elimination(lx.AbstractLinearSolver):
+    """Lineax's solver interface to `_eliminate`, for implicit derivatives where a batch of LAPACK
+    calls can hang (`_adjoint`): pivots below `eps` times the largest diagonal entry are dropped,
+    so that the singular system of a camera that sees nothing (a zero matrix) or of a point seen
+    once gets a finite solution, where LU's is NaN, and the derivative through that problem's
+    result, which is NaN, is zero. The matrices are small (one camera's parameters, or a point's
+    three coordinates), materialised."""
+
+    def init(self, operator, options):
+        del options
+        if operator.in_size() != operator.out_size():
+            raise ValueError("`_Elimination` solves square systems only")
+        return operator.as_matrix()
+
+    def compute(self, state, vector, options):
+        del options
+        flat, unravel = ravel_pytree(vector)
+        tol = jnp.finfo(state.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(state)))
+        x = _eliminate(state, flat[:, None], tol)[0][:, 0]
+        return unravel(x.astype(flat.dtype)), lx.RESULTS.successful, {}
+
+    def transpose(self, state, options):
+        return state.T, options
+
+    def conj(self, state, options):
+        return state.conj(), options
+
+    def assume_full_rank(self):
+        return False
 
 
 def _definite_solve(M, B):
@@ -922,18 +965,21 @@ def _held_jvp(fn, primals, tangents):
 def _adjoint() -> optx.ImplicitAdjoint:
     """Implicit derivatives by a pseudo-inverse (SVD): a camera with too few points (none, where
     its seed is not finite) has a singular system, on which optimistix's default solve (LU)
-    raised for the whole batch; its result is NaN, and its derivative zero. Where a batch of
-    LAPACK calls can hang (several CPU devices), the batched SVD did (64 cameras split over 2
-    host devices, under `jax.grad`), and the default LU, which did not, stays.
+    raised for the whole batch; its result is NaN, and its derivative zero.
 
     The pseudo-inverse drops singular values below `eps` of the largest (`rcond=-1`), not
     Lineax's default `2 eps n`: the system is the Hessian, whose condition is the Jacobian's
     squared, and a pinhole's distortion directions lie near `1e-6` of its largest singular value.
     In float32, `2 eps n` (3.6e-6) dropped them: the gradient of a refined camera's centre with
     respect to its pixels came out 73-78 % off float64's, signs flipped (a user's trial); with
-    `eps`, 0.1-0.5 %, as LU gives."""
+    `eps`, 0.1-0.5 %, as LU gives.
+
+    Where a batch of LAPACK calls can hang (several CPU devices) the batched SVD did (64 cameras
+    split over 2 host devices, under `jax.grad`), and LAPACK's LU, which did not there, raised for
+    a camera that saw nothing (a user's trial): the systems are solved there by `_Elimination`,
+    without LAPACK, which drops the pivots of a singular system."""
     if _sharding.batched_lapack_may_hang():
-        return optx.ImplicitAdjoint()
+        return optx.ImplicitAdjoint(linear_solver=_Elimination())
     return optx.ImplicitAdjoint(linear_solver=lx.SVD(rcond=-1.0))
 
 
