@@ -26,16 +26,20 @@ class Triangulation(eqx.Module):
       NaN, like `angle`, for a point seen by fewer than two views.
     - `angle`: `(..., N)` the widest angle between two of the point's rays, in degrees: small
       angles mean depth poorly determined.
-    - `ok`: `(..., N)` bool: at least 2 views, in front of every camera that sees it, an
-      angle of at least `min_angle`, and an `rms` of at most `max_rms` (by default any: `ok`
-      then says the geometry holds, not that the pixels agree; wrong matches or the wrong rig
-      are in `rms`).
+    - `in_front`: `(..., N)` bool: in front of every camera that sees it (a fisheye's: on the
+      side its ray points to); False for fewer than 2 views. Every point behind its cameras
+      means a mirrored world (the cameras' `calibrate` says `mirrored`: a world frame of the
+      other handedness).
+    - `ok`: `(..., N)` bool: at least 2 views, `in_front`, an angle of at least `min_angle`,
+      and an `rms` of at most `max_rms` (by default any: `ok` then says the geometry holds, not
+      that the pixels agree; wrong matches or the wrong rig are in `rms`).
     """
 
     points: Float[Array, "*batch N 3"]
     views: Int[Array, "*batch N"]
     rms: Float[Array, "*batch N"]
     angle: Float[Array, "*batch N"]
+    in_front: Bool[Array, "*batch N"]
     ok: Bool[Array, "*batch N"]
 
 
@@ -317,9 +321,12 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
             cameras, X, jnp.stack([pu, pv], -1), m & seen, max_steps
         )
     n, rms, angle, in_front = _diagnostics(cameras, X, pu, pv, m, rays if fisheye else None)
-    ok = seen & in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
+    in_front = seen & in_front
+    ok = in_front & (angle >= min_angle) & jnp.all(jnp.isfinite(X), -1)
     X = jnp.where(seen[:, None], X, jnp.nan)
-    return Triangulation(points=X, views=n.astype(jnp.int32), rms=rms, angle=angle, ok=ok)
+    return Triangulation(
+        points=X, views=n.astype(jnp.int32), rms=rms, angle=angle, in_front=in_front, ok=ok
+    )
 
 
 def triangulate(
