@@ -101,7 +101,8 @@ def _guessed_intrinsics(P: np.ndarray) -> np.ndarray | None:
 
 def _pose(K: np.ndarray, world: np.ndarray, pixels: np.ndarray, found: np.ndarray, start=None):
     """`P = K [R | t]` of the pose that best projects `world[found]` onto `pixels[found]`, from
-    `start (R, t)` or from the homography of the points' best-fitting plane; and its RMS.
+    `start (R, t)` or from the homography of the points' best-fitting plane; and its RMS. None
+    where that homography is not finite (points seen on a line).
 
     Least squares over a rotation (a rotation vector applied to the start's) and `t` by SciPy's
     Levenberg-Marquardt, the start from Zhang's eq. 10 (as `_planar._pose`): a few dozen points
@@ -116,7 +117,11 @@ def _pose(K: np.ndarray, world: np.ndarray, pixels: np.ndarray, found: np.ndarra
         A = np.linalg.svd(points - c)[2]
         A[2] = np.cross(A[0], A[1])
         q = (points - c) @ A[:2].T
-        M = np.linalg.solve(K, _homography(q, observed))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            H = _homography(q, observed)
+        if not np.all(np.isfinite(H)):
+            return None  # (the points lie on a line, as seen: no pose from them)
+        M = np.linalg.solve(K, H)
         scale = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
         scale *= -1.0 if np.sum(q @ M[2, :2] + M[2, 2]) < 0 else 1.0  # the points in front
         r1, r2 = scale * M[:, 0], scale * M[:, 1]
@@ -135,6 +140,43 @@ def _pose(K: np.ndarray, world: np.ndarray, pixels: np.ndarray, found: np.ndarra
     R, t = rotation(fit.x), fit.x[3:]
     rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 2) ** 2, -1))))
     return K @ np.c_[R, t], (R, t), rms
+
+
+# The labelling is trusted where the matched dots fit a camera to this share of their spacing;
+# from this many dots, a camera with radial distortion may show it (a wide-angle lens, k1 =
+# -0.4: a pinhole fitted 450 rightly matched dots of a rendered plate to 1.42 px, where 1.26
+# were trusted, a user's trial).
+_MAX_RMS_SHARE, _RADIAL_DOTS = 0.05, 20
+
+
+def _radial_rms(P, world, pixels, found) -> float:
+    """The RMS (pixels) of the camera `P` with radial distortion (k1, k2) fitted to the dots
+    `found`: SciPy's Levenberg–Marquardt over the focal lengths, principal point, pose, k1 and
+    k2, from `P`'s (inf if `P` does not decompose)."""
+    import jax.numpy as jnp
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    from ._camera import Camera
+
+    camera = Camera.from_projection(jnp.asarray(P), skew=False)
+    K, R, t = (np.asarray(x, np.float64) for x in (camera.K, camera.R, camera.t))
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R))):
+        return np.inf
+    points, observed = world[found], pixels[found]
+
+    def residuals(p):
+        c = points @ Rotation.from_rotvec(p[4:7]).as_matrix().T @ R.T + p[7:10]
+        x = c[:, :2] / c[:, 2:]
+        r2 = np.sum(x * x, -1, keepdims=True)
+        x = x * (1.0 + p[10] * r2 + p[11] * r2 * r2)
+        return (x * p[:2] + p[2:4] - observed).ravel()
+
+    start = np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.0, 0.0, 0.0, t, 0.0, 0.0]
+    with np.errstate(all="ignore"):
+        fit = least_squares(residuals, start, method="lm", x_scale="jac")
+    rms = float(np.sqrt(np.mean(np.sum(fit.fun.reshape(-1, 2) ** 2, -1))))
+    return rms if np.isfinite(rms) else np.inf
 
 
 def _fit(world, pixels, found, K, pose):
@@ -188,7 +230,7 @@ def _lattice_steps(world: np.ndarray) -> np.ndarray:
     return keys[counts >= _LATTICE_SHARE * len(world)] * scale
 
 
-def _shifted_labelling(world, blobs, P, n: int, gate: float):
+def _shifted_labelling(world, blobs, P, n: int, gate: float, reach: float):
     """`(step, count)` where the labels shifted by one step of the target's lattice (the camera
     `P`'s prediction of the dots moved by it) would match more blobs than the `n` matched;
     else None. Clicks all one column off on a periodic plate give every dot its neighbour's id
@@ -197,10 +239,29 @@ def _shifted_labelling(world, blobs, P, n: int, gate: float):
     unexplained, which its shift explains (704 blobs)."""
     best = None
     for step in _lattice_steps(world):
-        count = int(np.sum(_mutual(_label._project(P, world + step), blobs, gate) >= 0))  # noqa: SLF001
+        predicted = _label._project(P, world + step)  # noqa: SLF001
+        count = int(np.sum(_matches(predicted, blobs, gate, reach) >= 0))
         if count > n + max(2, 0.005 * n) and (best is None or count > best[1]):
             best = (step, count)
     return best
+
+
+def _matches(predicted, blobs, gate: float, reach: float) -> np.ndarray:
+    """`_mutual`, less the dots with another dot's image within `reach` that found no blob of
+    its own (`_label.crowded`): their blob may be the two dots' merged."""
+    index = _mutual(predicted, blobs, gate)
+    return np.where(_label.crowded(predicted, reach, index >= 0), -1, index)
+
+
+def _in_image(P, world, detection: Detection) -> np.ndarray:
+    """Where `P` projects `world` into the image searched (anywhere in front, if its size is not
+    known)."""
+    predicted = _label._project(P, world)  # noqa: SLF001
+    inside = np.all(np.isfinite(predicted), axis=1)
+    if detection.image_shape is not None:
+        height, width = detection.image_shape
+        inside &= np.all((predicted >= -0.5) & (predicted <= (width - 0.5, height - 0.5)), axis=1)
+    return inside
 
 
 def _vector(v: np.ndarray) -> str:
@@ -311,7 +372,14 @@ def match_dots(
                 f"{len(where)} clicks{plane}: give six or more dots not all on one plane, or "
                 "four or more and `focal` (a focal-length guess in pixels)."
             )
-        first = _fit(world, at, found, K if not enough else None, None)
+        # (six or more: their DLT; where that is degenerate, the pose for `focal` if given)
+        first = _fit(world, at, found, K, None)
+        if first is None and K is None:
+            return Labels.failed(
+                M, B, f"the {len(where)} clicked dots do not determine a camera alone (too many "
+                "of them on one plane or line): click dots spread over the target's depth, or "
+                "give `focal` (a focal-length guess in pixels)",
+            )  # fmt: skip
         if first is None:
             return Labels.failed(
                 M, B, "the clicks do not fit one camera: check their dot ids and positions"
@@ -326,6 +394,8 @@ def match_dots(
     if not np.isfinite(spacing):
         return Labels.failed(M, B, "the seed camera sees fewer than two dots of the target")
     gate = _FIRST_GATE * spacing
+    # two dots whose images lie within a blob's diameter and 3 px, one blob for both, are left out
+    reach = _label.crowd_reach(detection.major)
     # Clicks: the seed's camera is best around them, so the matching grows from there, the
     # radius around the clicks doubling each round; a camera seed predicts everywhere alike.
     radius = 2 * spacing if clicks is not None else np.inf
@@ -335,7 +405,7 @@ def match_dots(
         if clicks is not None:
             near = np.min(np.linalg.norm(predicted[:, None] - clicks[0][None], axis=-1), axis=1)
             predicted = np.where((near <= radius)[:, None], predicted, np.nan)
-        new = _mutual(predicted, blobs, gate)
+        new = _matches(predicted, blobs, gate, reach)
         found = new >= 0
         if found.sum() < 4:
             return Labels.failed(
@@ -372,22 +442,38 @@ def match_dots(
     found = index >= 0
     n = int(found.sum())
     spacing = _spacing(blobs[index[found]])
-    max_rms = 0.05 * spacing if max_rms is None else float(max_rms)
+    max_rms = _MAX_RMS_SHARE * spacing if max_rms is None else float(max_rms)
     if n < min_dots:
         return Labels.failed(M, B, f"only {n} dots matched; need {min_dots}")
+    lens = ""
+    if not rms <= max_rms and n >= _RADIAL_DOTS:  # a lens's distortion, which P does not model?
+        radial = _radial_rms(P, world, np.where(found[:, None], blobs[index], 0.0), found)
+        if radial <= max_rms:
+            rms, lens = radial, " with radial distortion (k1, k2)"
+        else:
+            lens = f"; with radial distortion (k1, k2), {radial:.2f} px"
     if not rms <= max_rms:
         return Labels.failed(
-            M, B, f"the matched dots fit a camera to {rms:.2f} px RMS only (max {max_rms:.2f})"
-        )
-    better = _shifted_labelling(world, blobs, P, n, gate)
+            M, B, f"the matched dots fit a camera to {rms:.2f} px RMS only, where up to "
+            f"{max_rms:.2f} px is trusted ({_MAX_RMS_SHARE:.0%} of the dots' spacing{lens}): "
+            "wrong matches, or blobs that are no dots; `max_rms` sets the limit",
+        )  # fmt: skip
+    better = _shifted_labelling(world, blobs, P, n, gate, reach)
     if better is not None:
         step, count = better
         return Labels.failed(
             M, B, f"the labels shifted by one step of the target's lattice ({_vector(step)}) "
-            f"would match {count} blobs, not {n}: the seed is a row or column off (clicks on a "
-            "periodic target: check their dot ids)",
+            f"would match {count} blobs, not {n}: the seed is a row or column off "
+            + ("(clicks on a periodic target: check their dot ids)" if clicks is not None else
+               "(a seed camera this far off a periodic target: click four or more dots)"),
         )  # fmt: skip
-    message = f"{n} of {M} dots matched in {rounds} rounds, {rms:.2f} px RMS"
+    message = f"{n} of {M} dots matched in {rounds} rounds, {rms:.2f} px RMS{lens}"
+    crowd = _label.crowded(_label._project(P, world), reach, found) & _in_image(P, world, detection)  # noqa: SLF001
+    if crowd.any():
+        message += (
+            f"; {int(crowd.sum())} dots left out, each within {reach:.1f} px of another's image "
+            "with no blob of its own (merged blobs)"
+        )
     if clicks is not None:  # clicks the final labelling disagrees with are reported, not used
         pixels, where = clicks
         off = np.linalg.norm(blobs[index[where]] - pixels, axis=-1)

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _label
 from ._camera import Camera
 from ._detect import Detection, _as_grey, flag
 from ._label import Labels
@@ -472,10 +473,15 @@ def second_look(
         raise ValueError(f"`refit` is True, False or 'auto'; got {refit!r}.")
     if refit == "auto" and centre_by == "centroid":
         refit = False  # (the cleaned centroid of a clean dot is its centroid again)
+    # a dot with another's image within a diameter and 3 px is not looked for (one blob may be
+    # both dots', which `match_dots` leaves out) nor refitted (the other lies in its window)
+    crowded = _label.crowded(predicted, _label.crowd_reach([2.0 * radius]))
     found, far, centres = [], [], {}
     for k in np.flatnonzero(~mask) if refit is False else np.arange(len(world)):
         at = pixels[k] if mask[k] else predicted[k]
-        if not (np.all(np.isfinite(at)) and 0 <= at[0] < width and 0 <= at[1] < height):
+        if crowded[k] or not (
+            np.all(np.isfinite(at)) and 0 <= at[0] < width and 0 <= at[1] < height
+        ):
             continue
         fit = look(k, at)
         why = verdict(fit, np.inf if beyond_gate else gate)
