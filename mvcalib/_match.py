@@ -15,12 +15,19 @@ camera, or a few dots whose pixels a person clicked. From the seed,
    else the pose with the focal guess), shrink the gate to a few times the fit's RMS, and
    repeat until the matches no longer change.
 
-The labelling is accepted only if enough dots were matched, they fit one camera well, and no
-shift of the labels by one step of a periodic target's lattice (a row or column of a grid or
-plate) would match more blobs; otherwise the view is flagged (`Labels.ok` False, with the
-reason), never labelled wrongly in silence. (Clicks all one column over on a PIV plate give
-every dot its neighbour's id and fit a camera a pitch away as well as the right labels: only
-the border column the shifted labels leave unexplained tells them apart.)
+Two dots whose predicted images lie within a blob's diameter and 3 px of each other (two levels
+of a plate seen along the line joining them) may make one blob whose centroid is neither's: they
+are matched only where each finds a blob of its own, and the message counts those left out.
+
+The labelling is accepted only if enough dots were matched, they fit one camera well (a pinhole;
+from 20 dots, one with radial distortion, for a wide-angle lens), and no shift of the labels by
+one step of a periodic target's lattice (a row or column of a grid or plate) would match more
+blobs; a target that runs out of the photo on both sides along such a step cannot be told from
+its shift at all, and its view is flagged unless `trust_seed`. Otherwise the view is flagged
+(`Labels.ok` False, with the reason), never labelled wrongly in silence. (Clicks all one
+column over on a PIV plate give every dot its neighbour's id and fit a camera a pitch away as
+well as the right labels: only the border column the shifted labels leave unexplained tells
+them apart.)
 """
 
 from __future__ import annotations
@@ -230,6 +237,12 @@ def _lattice_steps(world: np.ndarray) -> np.ndarray:
     return keys[counts >= _LATTICE_SHARE * len(world)] * scale
 
 
+def _margin(n: int) -> float:
+    """How many more blobs than the `n` matched a shifted labelling must explain to be told
+    better (detection's misses and clutter at the image's edges)."""
+    return max(2.0, 0.005 * n)
+
+
 def _shifted_labelling(world, blobs, P, n: int, gate: float, reach: float):
     """`(step, count)` where the labels shifted by one step of the target's lattice (the camera
     `P`'s prediction of the dots moved by it) would match more blobs than the `n` matched;
@@ -241,9 +254,30 @@ def _shifted_labelling(world, blobs, P, n: int, gate: float, reach: float):
     for step in _lattice_steps(world):
         predicted = _label._project(P, world + step)  # noqa: SLF001
         count = int(np.sum(_matches(predicted, blobs, gate, reach) >= 0))
-        if count > n + max(2, 0.005 * n) and (best is None or count > best[1]):
+        if count > n + _margin(n) and (best is None or count > best[1]):
             best = (step, count)
     return best
+
+
+def _blind_step(world, P, found, detection: Detection, margin: float):
+    """A step of the target's lattice along which the photo cannot tell the labels from the
+    labels shifted by it, or None: where the target runs out of the photo on both sides, so
+    that no dot in view lies on its border across the step (a blob the shifted labels leave
+    unexplained) and no place in view lies one step beyond it (where they predict a dot).
+    With a plate larger than the view and clicks one column off, every dot was labelled a
+    pitch off, fitting as well as the right labels (a user's trial: 268 of 268 wrong, OK)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(world)
+    for step in _lattice_steps(world):
+        near = 0.25 * float(np.linalg.norm(step))
+        first = tree.query(world - step, distance_upper_bound=near)[0] == np.inf
+        last = tree.query(world + step, distance_upper_bound=near)[0] == np.inf
+        seen = found[first] & _in_image(P, world[first], detection)
+        beyond = _in_image(P, world[last] + step, detection)
+        if seen.sum() + beyond.sum() <= 2 * margin:
+            return step
+    return None
 
 
 def _matches(predicted, blobs, gate: float, reach: float) -> np.ndarray:
@@ -294,6 +328,7 @@ def match_dots(
     max_rms: float | None = None,
     min_dots: int | None = None,
     max_rounds: int = 20,
+    trust_seed: bool = False,
 ) -> Labels:
     """Tell which detected blob is which dot of `target`, from a rough camera or a few clicks.
 
@@ -315,6 +350,10 @@ def match_dots(
     - `min_dots`: the fewest matched dots that make a labelling; default 10 (or the target's
       size, if smaller).
     - `max_rounds`: of match and calibrate.
+    - `trust_seed`: take the seed's word where the photo cannot check it: a periodic target
+      (a grid, a plate) that runs out of the photo on both sides along a step of its lattice
+      looks the same with every dot's id one step over, so the ids rest on the seed alone.
+      Such a view is flagged unless `trust_seed` is True (check the clicks first).
 
     **Returns:** `Labels` (see there; `message` summarises the matching or says why it failed).
 
@@ -458,7 +497,16 @@ def match_dots(
             f"{max_rms:.2f} px is trusted ({_MAX_RMS_SHARE:.0%} of the dots' spacing{lens}): "
             "wrong matches, or blobs that are no dots; `max_rms` sets the limit",
         )  # fmt: skip
-    better = _shifted_labelling(world, blobs, P, n, gate, reach)
+    blind = _blind_step(world, P, found, detection, _margin(n))
+    # (where the photo cannot tell a shift, counting the blobs each labelling explains cannot)
+    better = None if blind is not None else _shifted_labelling(world, blobs, P, n, gate, reach)
+    if blind is not None and not trust_seed:
+        return Labels.failed(
+            M, B, f"the target runs out of the photo on both sides along its lattice step "
+            f"{_vector(blind)}: with every id one step over the dots fit as well, so which dot is "
+            "which rests on the seed alone; check it, and pass `trust_seed=True` (the CLI's "
+            "--trust-clicks)",
+        )  # fmt: skip
     if better is not None:
         step, count = better
         return Labels.failed(
@@ -468,6 +516,8 @@ def match_dots(
                "(a seed camera this far off a periodic target: click four or more dots)"),
         )  # fmt: skip
     message = f"{n} of {M} dots matched in {rounds} rounds, {rms:.2f} px RMS{lens}"
+    if blind is not None:
+        message += f"; the ids along {_vector(blind)} rest on the seed (trusted)"
     crowd = _label.crowded(_label._project(P, world), reach, found) & _in_image(P, world, detection)  # noqa: SLF001
     if crowd.any():
         message += (

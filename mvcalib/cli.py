@@ -382,6 +382,20 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="refine each camera by Levenberg-Marquardt with radial/tangential distortion",
     )
+    images.add_argument(
+        "--distortion",
+        type=_distortion,
+        metavar="LIST",
+        help="the distortion coefficients to refine, e.g. k1 or none (implies --refine; default "
+        "k1,k2,p1,p2): fewer where the dots fill a small part of the photos",
+    )
+    images.add_argument(
+        "--huber",
+        type=float,
+        metavar="PX",
+        help="refine with a Huber loss of this scale (pixels; implies --refine): for dots whose "
+        "centres something pulls (a particle or a speck touching them), e.g. 0.2",
+    )
     images.add_argument("--bright-dots", action="store_true", help="bright dots on dark ground")
     images.add_argument(
         "--target",
@@ -398,6 +412,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     images.add_argument(
         "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
+    )
+    images.add_argument(
+        "--trust-clicks",
+        action="store_true",
+        help="with --clicks on a grid or plate larger than the photos: take the clicks' dot ids "
+        "as right (the photos cannot tell every id one step over; checked by you)",
     )
     images.add_argument("--workers", **_WORKERS)
     images.add_argument(
@@ -577,9 +597,11 @@ def _check_usage(parser, args) -> None:
         parser.error("--min-angle must be non-negative")
     if args.command == "triangulate" and not args.max_rms > 0:
         parser.error("--max-rms must be positive")
+    if args.command == "calibrate-images" and args.trust_clicks and not args.clicks:
+        parser.error("--trust-clicks is about the ids of --clicks: give --clicks FILE")
     for loss in ("huber", "cauchy"):
-        if args.command == "calibrate-rig" and getattr(args, loss) is not None:
-            if not getattr(args, loss) > 0:
+        if args.command in ("calibrate-rig", "calibrate-images"):
+            if getattr(args, loss, None) is not None and not getattr(args, loss) > 0:
                 parser.error(f"--{loss} must be positive")
     if (
         args.command == "calibrate-rig"
@@ -1474,20 +1496,27 @@ def _triangulate(args) -> int:
 def _calibrate_images(args) -> int:
     from . import io, targets
     from ._images import calibrate_images
+    from ._refine import Huber
 
     target = targets.from_file(args.target) if args.target else targets.box_corner()
     # (a malformed clicks file, as a malformed --target, is bad input: exit code 2)
     seeds = io.load_clicks(args.clicks, args.images, target) if args.clicks else None
     _check_seeds(args, target, seeds)
+    refine = args.refine
+    if args.distortion is not None or args.huber is not None:
+        refine = {} if args.distortion is None else {"distortion": args.distortion}
+        if args.huber is not None:
+            refine["loss"] = Huber(args.huber)
     result = calibrate_images(
         args.images,
         target,
-        refine=args.refine,
+        refine=refine,
         detect=dict(dark_dots=not args.bright_dots),
         seeds=seeds,
         focal=args.focal,
         progress=not args.quiet,
         second_look=not args.no_second_look,
+        label=dict(trust_seed=True) if args.trust_clicks else None,
         workers=_workers(args, len(args.images)),
     )
     print(result)
