@@ -295,6 +295,12 @@ def test_bundle_adjust_and_aniposelib_files_refuse_bad_input(tmp_path):
     off = np.asarray(rig.pixels) + 100.0  # every observation beyond the threshold
     with pytest.raises(ValueError, match="keeps 0 points"):
         mc.bundle_adjust(rig.cameras, off, thresholds=(5.0,))
+    # cameras that see a mirrored world (the Oxford house's): every point behind them
+    c = rig.cameras
+    flip = np.diag([1.0, 1.0, -1.0])
+    mirrored = mc.Camera(c.alpha_u, c.alpha_v, c.u0, c.v0, -c.R @ flip, -c.t)
+    with pytest.raises(ValueError, match="behind the cameras that see them: the cameras see a"):
+        mc.bundle_adjust(mirrored, rig.pixels)
     bad = tmp_path / "calibration.toml"
     bad.write_text("[cam_0]\nmatrix = 3\n")
     with pytest.raises(ValueError, match="malformed|TOML"):
