@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _buckets
+from . import _buckets, _label
 from ._detect import Detection
 from ._label import Labels, label_dots
 from ._match import match_dots
@@ -266,7 +266,44 @@ def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
         labels,
         pixels=np.where(mask[:, None], labels.pixels, np.nan),
         mask=mask,
+        index=np.where(mask, labels.index, -1),
         message=labels.message + f"; dropped (ids {ids}): beyond the gate here only",
+    )
+
+
+def _spare_blobs(labels: Labels, detection, camera, world):
+    """`labels` with the dots it lacks given the blob that no dot took nearest their prediction,
+    within `_match._FIRST_GATE` of the dots' spacing and nearer it than any other dot's, where no
+    unlabelled dot's image lies close by (one blob for two, `_label.unlabelled_pairs`): for
+    `_misplaced` to judge across the images, as the second look's dots beyond the gate. A dot
+    that the target file misplaces by more than the second look's fit reaches (0.6 dot radii)
+    was matched in no image and dropped without a word (a user's trial: 0.5-1 mm, 3-6 px); its
+    blob is there in each, and measures it better than a fit at the edge of its reach."""
+    if detection is None or not labels.ok or not len(labels.spurious) or labels.mask.all():
+        return labels
+    from ._match import _FIRST_GATE, _spacing
+
+    predicted = np.asarray(camera.project(world), np.float64)
+    seen = np.all(np.isfinite(predicted), axis=1)
+    blobs = np.asarray(detection.centroids, np.float64)[labels.spurious]
+    reach = _FIRST_GATE * _spacing(predicted[seen])
+    pair = _label.unlabelled_pairs(predicted, _label.crowd_reach(detection.major), labels.mask)
+    d = np.linalg.norm(predicted[:, None] - blobs[None], axis=-1)
+    d = np.where(seen[:, None], d, np.inf)
+    nearest = np.argmin(d, axis=1)
+    back = np.argmin(d, axis=0)  # each spare blob's nearest prediction, of every dot's
+    k = np.arange(len(world))
+    added = ~labels.mask & seen & ~pair & (d[k, nearest] < reach) & (back[nearest] == k)
+    if not added.any():
+        return labels
+    pixels = np.where(added[:, None], blobs[nearest], labels.pixels)
+    index = np.where(added, np.asarray(labels.spurious)[nearest], labels.index)
+    return dataclasses.replace(
+        labels,
+        pixels=pixels,
+        mask=labels.mask | added,
+        index=index,
+        spurious=np.setdiff1d(labels.spurious, index[added]),
     )
 
 
@@ -379,6 +416,13 @@ def calibrate_images(
         except ValueError as error:
             message = str(error).removeprefix(f"{names[i]}: ")  # the name is shown beside it
             labels.append(Labels.failed(len(target.points), 0, message))
+        few = detection is not None and len(detection) < min(10, len(target.points))
+        if not labels[-1].ok and few and detect.get("dark_dots", True):
+            # (a user's trial: bright dots searched as dark ones, "only 0 blobs found")
+            labels[-1] = dataclasses.replace(
+                labels[-1], message=labels[-1].message + f" ({len(detection)} dark dots found: "
+                "bright dots on a dark ground? detect=dict(dark_dots=False), --bright-dots)",
+            )  # fmt: skip
         detections.append(detection)
         if progress:
             print(f"[{i + 1}/{len(images)}] {names[i]}: {labels[-1].message}", file=sys.stderr)
@@ -406,10 +450,13 @@ def calibrate_images(
         for i, picture in pictures.items():
             if ok[i] and labels[i].ok:
                 first = labels[i]
+                if check:  # (a blob that no dot took measures a dot better than a fit)
+                    labels[i] = _spare_blobs(first, detections[i], cameras[i], world)
                 try:
                     labels[i] = _second_look(
-                        picture, first, target, cameras[i], detection=detections[i], **options
-                    )
+                        picture, labels[i], target, cameras[i], detection=detections[i],
+                        **options,
+                    )  # fmt: skip
                 except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
                     pass
                 if check:

@@ -182,24 +182,46 @@ def crowd_reach(major) -> float:
     return float(np.median(major)) + CROWDED_MARGIN if len(major) else 0.0
 
 
-def crowded(predicted: np.ndarray, reach: float, matched: np.ndarray | None = None):
-    """Where a dot's predicted image `predicted (M, 2)` (NaN: not seen) has another dot's within
-    `reach` pixels (two dots of a multi-level plate, or of two faces of a 3-D target, seen along
-    the line that joins them): its blob may be both dots' merged into one, whose centroid is
-    neither's. Given the dots `matched` each to a blob of its own, only where such a neighbour
-    is not matched: two blobs for two dots were resolved, one blob for two was not."""
+def close_pairs(predicted: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """`(a, b)`: the pairs of dots whose predicted images `predicted (M, 2)` (NaN: not seen) lie
+    within `reach` pixels of each other (two dots of a multi-level plate, or of two faces of a
+    3-D target, seen along the line that joins them)."""
+    from scipy.spatial import cKDTree
+
+    seen = np.flatnonzero(np.all(np.isfinite(predicted), axis=1))
+    if len(seen) < 2 or not reach > 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    a, b = seen[cKDTree(predicted[seen]).query_pairs(reach, output_type="ndarray")].T
+    return a, b
+
+
+def unlabelled_pairs(predicted: np.ndarray, reach: float, mask: np.ndarray) -> np.ndarray:
+    """Where a dot is unlabelled (`mask` False) and so is a neighbour whose image lies within
+    `reach` (`close_pairs`): one blob between them may be both, so neither is looked for."""
+    a, b = close_pairs(predicted, reach)
+    both = ~mask[a] & ~mask[b]
+    out = np.zeros(len(predicted), bool)
+    out[a[both]] = out[b[both]] = True
+    return out
+
+
+def crowded(predicted: np.ndarray, reach: float, index: np.ndarray, blobs: np.ndarray):
+    """Where a dot's blob may be both its own and a close neighbour's merged into one, whose
+    centroid is neither's (`close_pairs`): the dot is matched, `index (M,)` into `blobs (K, 2)`
+    (-1: none), the neighbour is not, and the neighbour's nearest blob is the dot's. (A
+    neighbour unmatched for another reason, its own blob beyond the gate, is no merger.)"""
     from scipy.spatial import cKDTree
 
     out = np.zeros(len(predicted), bool)
-    seen = np.flatnonzero(np.all(np.isfinite(predicted), axis=1))
-    if len(seen) < 2 or not reach > 0:
+    a, b = close_pairs(predicted, reach)
+    if not len(a) or not len(blobs):
         return out
-    a, b = seen[cKDTree(predicted[seen]).query_pairs(reach, output_type="ndarray")].T
-    if matched is None:
-        out[a] = out[b] = True
-    else:
-        out[a] |= ~matched[b]
-        out[b] |= ~matched[a]
+    nearest = np.full(len(predicted), -1)
+    ends = np.union1d(a, b)
+    nearest[ends] = cKDTree(blobs).query(predicted[ends])[1]
+    for x, y in ((a, b), (b, a)):  # x matched, y not, y's nearest blob x's
+        merged = (index[x] >= 0) & (index[y] < 0) & (nearest[y] == index[x])
+        out[x[merged]] = True
     return out
 
 

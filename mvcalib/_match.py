@@ -281,10 +281,10 @@ def _blind_step(world, P, found, detection: Detection, margin: float):
 
 
 def _matches(predicted, blobs, gate: float, reach: float) -> np.ndarray:
-    """`_mutual`, less the dots with another dot's image within `reach` that found no blob of
-    its own (`_label.crowded`): their blob may be the two dots' merged."""
+    """`_mutual`, less the dots whose blob may be theirs and a neighbour's merged: another dot's
+    image within `reach` found no blob, and its nearest is theirs (`_label.crowded`)."""
     index = _mutual(predicted, blobs, gate)
-    return np.where(_label.crowded(predicted, reach, index >= 0), -1, index)
+    return np.where(_label.crowded(predicted, reach, index, blobs), -1, index)
 
 
 def _in_image(P, world, detection: Detection) -> np.ndarray:
@@ -518,11 +518,13 @@ def match_dots(
     message = f"{n} of {M} dots matched in {rounds} rounds, {rms:.2f} px RMS{lens}"
     if blind is not None:
         message += f"; the ids along {_vector(blind)} rest on the seed (trusted)"
-    crowd = _label.crowded(_label._project(P, world), reach, found) & _in_image(P, world, detection)  # noqa: SLF001
-    if crowd.any():
+    predicted = _label._project(P, world)  # noqa: SLF001
+    mutual = _mutual(predicted, blobs, gate)
+    merged = _label.crowded(predicted, reach, mutual, blobs)
+    if merged.any():
         message += (
-            f"; {int(crowd.sum())} dots left out, each within {reach:.1f} px of another's image "
-            "with no blob of its own (merged blobs)"
+            f"; {int(merged.sum())} dots left out: their blob is also the nearest of another "
+            f"dot's image within {reach:.1f} px (merged blobs)"
         )
     if clicks is not None:  # clicks the final labelling disagrees with are reported, not used
         pixels, where = clicks

@@ -473,9 +473,13 @@ def second_look(
         raise ValueError(f"`refit` is True, False or 'auto'; got {refit!r}.")
     if refit == "auto" and centre_by == "centroid":
         refit = False  # (the cleaned centroid of a clean dot is its centroid again)
-    # a dot with another's image within a diameter and 3 px is not looked for (one blob may be
-    # both dots', which `match_dots` leaves out) nor refitted (the other lies in its window)
-    crowded = _label.crowded(predicted, _label.crowd_reach([2.0 * radius]))
+    # Two missing dots whose images lie within a diameter and 3 px are not looked for (one blob
+    # may be both, which `match_dots` leaves out), nor a matched dot with a neighbour that close
+    # refitted (the other lies in its window)
+    reach = _label.crowd_reach([2.0 * radius])
+    a, b = _label.close_pairs(predicted, reach)
+    crowded = _label.unlabelled_pairs(predicted, reach, mask)
+    crowded[a[mask[a]]] = crowded[b[mask[b]]] = True
     found, far, centres = [], [], {}
     for k in np.flatnonzero(~mask) if refit is False else np.arange(len(world)):
         at = pixels[k] if mask[k] else predicted[k]

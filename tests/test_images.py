@@ -97,6 +97,16 @@ def test_bad_images_are_flagged_and_the_good_ones_calibrated_as_if_alone(tmp_pat
         mc.calibrate_images(good, TARGET, workers=0)
 
 
+def test_bright_dots_searched_as_dark_ones_get_a_hint():
+    """A user's trial: OpenPTV's back-lit dots searched as dark dots gave "only 0 blobs found",
+    with nothing pointing at `dark_dots`."""
+    camera = mc.synthetic.random_rig(jax.random.key(7), 1).cameras[0]
+    bright = 255 - np.asarray(render(camera, TARGET, key=0), np.uint8)
+    result = mc.calibrate_images([bright], TARGET)
+    assert not result.ok[0] and "bright dots on a dark ground?" in result.messages[0]
+    assert mc.calibrate_images([bright], TARGET, detect=dict(dark_dots=False)).ok[0]
+
+
 def test_removing_the_perspective_bias_of_the_dots_brings_the_cameras_closer():
     rig = mc.synthetic.random_rig(jax.random.key(11), 4)
     photos = [render(rig.cameras[i], TARGET, key=i) for i in range(4)]
