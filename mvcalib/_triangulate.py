@@ -410,6 +410,12 @@ def triangulate(
         _validate.check_placeholders(pixels, mask)
         if given:
             _validate.check_hidden_non_finite(pixels, mask)
+        R, t = np.asarray(cameras.R), np.asarray(cameras.t)
+        if t.dtype == np.float32:  # (a benchmark trial: 4 cameras 30 m apart in UTM, 0.16 m off)
+            centres = -np.einsum("cji,cj->ci", R, t)
+            _validate.check_float32_frame(
+                centres, "the rig is", "the cameras' spread", "the points"
+            )
     batch, n = pixels.shape[:-3], pixels.shape[-2]
     if host and batch:  # (C, sets x N): set b's point j is point b N + j
         pixels = np.moveaxis(pixels.reshape(-1, C, n, 2), 0, 1).reshape(C, -1, 2)

@@ -186,16 +186,21 @@ def _check_precision(world: np.ndarray, mask: np.ndarray) -> None:
         seen = world[np.asarray(mask).reshape(-1, world.shape[0]).any(0)]
     else:
         seen = np.broadcast_to(world, mask.shape + (3,))[np.asarray(mask)]
-    seen = seen[np.isfinite(seen).all(-1)]
-    if len(seen) < 2:
+    check_float32_frame(seen, "`world` is", "the points' extent", "the cameras")
+
+
+def check_float32_frame(points: np.ndarray, what: str, extent_of: str, losers: str) -> None:
+    """Warn where float32 rounds `points (K, 3)` by more than `MAX_ROUNDING` of their extent."""
+    points = points[np.isfinite(points).all(-1)]
+    if len(points) < 2:
         return
-    size, extent = float(np.abs(seen).max()), float(np.ptp(seen, axis=0).max())
+    size, extent = float(np.abs(points).max()), float(np.ptp(points, axis=0).max())
     rounding = float(np.spacing(np.float32(size))) / 2
     if extent > 0 and rounding > MAX_ROUNDING * extent:
         warnings.warn(
-            f"`world` is float32 and lies up to {size:.6g} from the origin, {size / extent:.0f} "
-            f"times the points' extent: float32 rounds it by up to {rounding:.2g}, "
-            f"{rounding / extent:.1e} of the extent, and the cameras lose that precision. "
+            f"{what} float32 and lies up to {size:.6g} from the origin, {size / extent:.0f} "
+            f"times {extent_of}: float32 rounds it by up to {rounding:.2g}, "
+            f"{rounding / extent:.1e} of the extent, and {losers} lose that precision. "
             "Subtract an origin near the points first, or compute in float64: "
             'jax.config.update("jax_enable_x64", True).',
             stacklevel=_outside_mvcalib(),

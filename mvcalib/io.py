@@ -29,11 +29,11 @@ from . import _validate
 from ._camera import LENSES, Camera
 
 __all__ = [
-    "save_json", "load_json", "save_opencv", "load_opencv", "save_colmap", "load_colmap",
-    "write_atomic", "save_aniposelib", "load_aniposelib", "Correspondences", "save_correspondences",
-    "load_correspondences", "Observations", "save_observations", "load_observations",
-    "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks", "load_clicks",
-    "load_openptv_calibration",
+    "save_json", "load_json", "save_opencv", "load_opencv", "opencv_name", "save_colmap",
+    "load_colmap", "write_atomic", "save_aniposelib", "load_aniposelib", "Correspondences",
+    "save_correspondences", "load_correspondences", "Observations", "save_observations",
+    "load_observations", "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
+    "load_clicks", "load_openptv_calibration",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -458,6 +458,21 @@ def _opencv_camera(camera: Camera, indent: str, image_size) -> list[str]:
     return lines
 
 
+def opencv_name(name: str) -> str:
+    """`name` as OpenCV's FileStorage keys allow (letters, digits and '_', not starting with a
+    digit), as the command line writes camera names to OpenCV's YAML.
+
+    ```python
+    >>> import mvcalib as mc
+    >>> mc.io.opencv_name("cal/cam1.tif"), mc.io.opencv_name("10")
+    ('cal_cam1_tif', 'cam_10')
+
+    ```
+    """
+    name = re.sub(r"\W", "_", str(name))
+    return name if name[:1].isalpha() or name[:1] == "_" else f"cam_{name}"
+
+
 def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathlib.Path:
     """Save cameras as OpenCV FileStorage YAML, readable by `cv2.FileStorage`, atomically.
 
@@ -504,10 +519,12 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
         names = _names(names, n, "cam_{}")
         wrong = [s for s in names if not s.isidentifier()]
         if wrong:
+            spelled = ", ".join(f"{s!r} as {opencv_name(s)!r}" for s in wrong[:3])
             raise ValueError(
                 f"OpenCV's YAML keys are letters, digits and '_', not starting with a digit: "
                 f"{', '.join(map(repr, wrong[:3]))}{' ...' if len(wrong) > 3 else ''} "
-                "cannot name a camera (the command line writes '10' as 'cam_10')."
+                f"cannot name a camera. Name them so (`names=[mc.io.opencv_name(n) for n in "
+                f"names]`: {spelled}, as the command line writes them)."
             )
         if "cameras" in names:
             raise ValueError("a camera may not be named 'cameras': the key that lists them.")

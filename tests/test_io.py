@@ -178,6 +178,13 @@ def test_opencv_yaml_says_which_names_cannot_be_keys(tmp_path):
     rig = mc.synthetic.random_rig(jax.random.key(0), 2).cameras
     with pytest.raises(ValueError, match="not starting with a digit: '10', '11' cannot name"):
         mc.io.save_opencv(tmp_path / "r.yml", rig, names=["10", "11"])
+    # calibrate_images names its cameras by their photos' paths (a user's trial): the error
+    # says how to spell them, and that spelling is written and read back
+    names = ["cal/cam1.tif", "cal/cam2.tif"]
+    with pytest.raises(ValueError, match="'cal/cam1.tif' as 'cal_cam1_tif'"):
+        mc.io.save_opencv(tmp_path / "r.yml", rig, names=names)
+    mc.io.save_opencv(tmp_path / "r.yml", rig, names=[mc.io.opencv_name(n) for n in names])
+    assert mc.io.load_opencv(tmp_path / "r.yml")[1] == ["cal_cam1_tif", "cal_cam2_tif"]
 
 
 def test_camera_names_a_csv_would_read_as_comments_are_refused(tmp_path):
