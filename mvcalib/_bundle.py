@@ -856,7 +856,10 @@ def bundle_adjust(
     rounds, refinement, size = [], None, 0
     for threshold in thresholds:
         start = time.perf_counter()
-        points = _triangulate.triangulate(cameras, np.where(seen[..., None], px, np.nan))
+        # (any RMS: the round's threshold judges each observation)
+        points = _triangulate.triangulate(
+            cameras, np.where(seen[..., None], px, np.nan), max_rms=np.inf
+        )
         X = np.asarray(points.points)
         error = np.linalg.norm(np.asarray(cameras.project(X)) - px, axis=-1)
         use = seen & (error < threshold)

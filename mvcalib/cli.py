@@ -116,9 +116,7 @@ files:
 exit codes: 0 success, 1 the work failed, 2 bad usage or bad input"""
 
 _DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4")  # a pinhole's and a fisheye's (k1..k4)
-# `triangulate`'s --max-rms by default: a point that reprojects worse is not ok. Its `ok` was
-# geometric only (in front, rays apart), and swapped (row, col) pixels or -1 for unseen views
-# came out ok at 77-538 px (3-D errors of metres), a note beside them on the terminal.
+# `triangulate`'s --max-rms by default: `mvcalib.triangulate`'s (`_triangulate.MAX_RMS`)
 FAR_PX = 10.0
 
 
@@ -833,10 +831,10 @@ def _load_toml_rig(path: pathlib.Path):
     )
 
 
-def _identifier(name: str) -> str:
-    """A camera name as OpenCV's FileStorage keys allow: letters, digits and '_'."""
-    name = re.sub(r"\W", "_", name)
-    return name if name[:1].isalpha() or name[:1] == "_" else f"cam_{name}"
+def _opencv_name(name: str) -> str:
+    from .io import opencv_name
+
+    return opencv_name(name)
 
 
 def _no_spaces(name: str) -> str:
@@ -853,13 +851,13 @@ def _align(names, data, path):
 
     index = {name: i for i, name in enumerate(names)}
     for i, name in enumerate(names):
-        for spelling in (_identifier(name), _no_spaces(name)):
+        for spelling in (_opencv_name(name), _no_spaces(name)):
             index.setdefault(spelling, i)
     P = len(data.points)
     pixels = np.full((len(names), P, 2), np.nan)
     mask = np.zeros((len(names), P), bool)
     for j, camera in enumerate(data.cameras):
-        spellings = (camera, _identifier(camera), _no_spaces(camera))
+        spellings = (camera, _opencv_name(camera), _no_spaces(camera))
         i = next((index[n] for n in spellings if n in index), None)
         if i is None:
             shown = ", ".join(repr(n) for n in names[:4]) + (", ..." if len(names) > 4 else "")
@@ -952,7 +950,7 @@ def _write_rig(args, cameras, names, status, rms, meta) -> int:
     cameras, names = cameras[keep], [names[i] for i in keep]
     if args.format == "opencv":
         io.save_opencv(
-            out, cameras, names=_unique(map(_identifier, names)), image_size=args.image_size
+            out, cameras, names=_unique(map(_opencv_name, names)), image_size=args.image_size
         )
     elif args.format == "aniposelib":
         io.save_aniposelib(out, cameras, args.image_size, names=names)
