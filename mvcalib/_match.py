@@ -342,7 +342,10 @@ def match_dots(
       its dots by `target.ids`.
     - `seed`: a rough `Camera` of this view, or clicked correspondences `(pixels (k, 2),
       dot_ids (k,))`: six or more, not all on one plane, are enough alone; four or five (or
-      coplanar ones) need `focal`.
+      coplanar ones) need `focal`. A camera must put most dots within 40 % of their spacing
+      of their blobs (the first gate); one further off (OpenPTV's `.ori` cameras of a set-up
+      behind glass and water, without their refraction: 55-112 px off the cavity's dots, a
+      user's trial) is flagged: click four dots instead.
     - `focal`: a focal-length guess in pixels (e.g. the lens's focal length over the pixel
       pitch); `principal_point`: `(x, y)` in pixels, default the image's centre.
     - `max_rms`: the largest RMS (pixels) of the final camera's fit to the matched dots that is

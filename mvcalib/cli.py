@@ -412,6 +412,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--focal", type=float, metavar="PX", help="focal-length guess in pixels, for the clicks"
     )
     images.add_argument(
+        "--names",
+        nargs="+",
+        metavar="NAME",
+        help="the cameras' names in the rig and --dots file, one a photo (default: the photos' "
+        "paths as given), e.g. cam1 cam2 cam3 cam4, as the tracks to triangulate name them",
+    )
+    images.add_argument(
         "--trust-clicks",
         action="store_true",
         help="with --clicks on a grid or plate larger than the photos: take the clicks' dot ids "
@@ -595,6 +602,12 @@ def _check_usage(parser, args) -> None:
         parser.error("--min-angle must be non-negative")
     if args.command == "triangulate" and not args.max_rms > 0:
         parser.error("--max-rms must be positive")
+    if args.command == "calibrate-images" and args.names is not None:
+        if len(args.names) != len(args.images) or len(set(args.names)) != len(args.names):
+            parser.error(
+                f"--names takes one name a photo, each its own: {len(args.names)} names for "
+                f"{len(args.images)} photos"
+            )
     if args.command == "calibrate-images" and args.trust_clicks and not args.clicks:
         parser.error("--trust-clicks is about the ids of --clicks: give --clicks FILE")
     for loss in ("huber", "cauchy"):
@@ -1492,6 +1505,8 @@ def _triangulate(args) -> int:
 
 # ---------------------------------------------------------------------------- images, demo
 def _calibrate_images(args) -> int:
+    import numpy as np
+
     from . import io, targets
     from ._images import calibrate_images
     from ._refine import Huber
@@ -1527,16 +1542,26 @@ def _calibrate_images(args) -> int:
         "target": target.name,
         "messages": result.messages,
         "misplaced": {str(i): point.tolist() for i, point in result.misplaced.items()},
+        "photos": [str(name) for name in result.names],
     }
     status, rms = result.calibration.status, result.calibration.report.rms
-    written = _write_rig(args, result.cameras, result.names, status, rms, meta)
+    names = args.names or result.names
+    written = _write_rig(args, result.cameras, names, status, rms, meta)
+    dots = ""
     if args.dots:
+        # the dots the calibration used: a misplaced one (left out of it) is not among them, so
+        # that `mvcalib report RIG DOTS` gives the calibration's Table I (a user's trial: it
+        # counted dot 68, 1.29 px off, and printed another table)
         ids = [str(int(i)) for i in target.ids]
+        used = result.mask & ~np.isin(np.asarray(target.ids), list(result.misplaced))
         io.save_correspondences(
-            args.dots, target.points, result.pixels, result.mask, cameras=result.names, points=ids
+            args.dots, target.points, result.pixels, used, cameras=names, points=ids
+        )
+        left = ", ".join(str(i) for i in result.misplaced)
+        dots = f"; labelled dots written to {args.dots}" + (
+            f" (not the misplaced dot {left}: as in the calibration)" if left else ""
         )
     n_ok = int(result.ok.sum())
-    dots = f"; labelled dots written to {args.dots}" if args.dots else ""
     print(
         f"\n{n_ok} of {len(result.names)} cameras calibrated; {_count(written, 'camera')} written "
         f"to {args.out} ({args.format}){dots}"

@@ -314,10 +314,24 @@ def test_cli_refuses_fewer_than_one_worker(tmp_path):
         (["calibrate-images", "--out", "rig.json"], "required"),
         (["calibrate-images", "x.png"], "--out"),
         (["demo", "--bogus"], "unrecognized arguments"),
+        (
+            ["calibrate-images", "a.png", "b.png", "--out", "r.json", "--names", "a"],
+            "--names takes one name a photo",
+        ),
+        (
+            ["calibrate-images", "a.png", "--out", "r.json", "--trust-clicks"],
+            "--trust-clicks is about the ids of --clicks",
+        ),
+        (
+            ["calibrate-images", "a.png", "--out", "r.json", "--huber", "0"],
+            "--huber must be positive",
+        ),
     ],
-    ids=["missing file", "no images", "no --out", "bad flag"],
+    ids=["missing file", "no images", "no --out", "bad flag", "names", "trust", "huber"],
 )
 def test_cli_bad_usage_is_one_line_and_exit_code_2(tmp_path, args, message):
+    for name in ("a.png", "b.png"):  # (files that exist: the arguments are checked first)
+        (tmp_path / name).write_bytes(b"not read")
     result = _cli(*args, cwd=tmp_path)
     assert result.returncode == 2
     assert message in result.stderr and "Traceback" not in result.stderr

@@ -198,8 +198,9 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     common = ["--target", target, "--focal", 70.0 / 0.012, "--bright-dots"]
     man_ori = root / "parameters" / "man_ori.par"  # OpenPTV's clicks as they are
     out = run_cli(
-        "calibrate-images", *images, *common, "--clicks", man_ori, "--out", tmp_path / "r.json"
-    )
+        "calibrate-images", *images, *common, "--clicks", man_ori, "--out", tmp_path / "r.json",
+        "--dots", tmp_path / "dots.csv",
+    )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "4 of 4 cameras calibrated" in out.stdout
     assert re.search(r"^ *cam4\.tif +-?0\.\d+ ", out.stdout, re.M), out.stdout  # Table I
@@ -212,6 +213,15 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     misplaced = json.loads((tmp_path / "r.json").read_text())["meta"]["misplaced"]
     assert list(misplaced) == ["68"]
     assert 0.05 < np.linalg.norm(np.subtract(misplaced["68"], (25.0, 25.0, 8.0))) < 0.3
+    # the dots file holds the dots the calibration used: `mvcalib report` gives its table
+    assert "(not the misplaced dot 68: as in the calibration)" in out.stdout
+    dots = mc.io.load_correspondences(tmp_path / "dots.csv")
+    assert "68" not in [p for p, seen in zip(dots.points, dots.mask.any(0)) if seen]
+    report = run_cli("report", tmp_path / "r.json", tmp_path / "dots.csv")
+    table = re.search(r"^ *cam4\.tif .*$", out.stdout, re.M).group(0).split()[1:5]
+    assert report.returncode == 0 and " ".join(table) in " ".join(report.stdout.split()), (
+        report.stdout
+    )
     # an unknown dot id in the clicks: bad input, exit 2, one line naming the row
     bad = cavity_clicks(root, tmp_path / "bad.csv", ["cam1.tif,999,10,10"])
     out = run_cli(
@@ -226,11 +236,13 @@ def test_cli_calibrates_the_cavity_photos_from_openptv_clicks(tmp_path):
     out = run_cli(
         "calibrate-images", images[0], broken, *images[2:], *common, "--clicks", clicks,
         "--out", tmp_path / "c.json", "--no-second-look", "--distortion", "k1", "--huber", "0.5",
+        "--names", "cam1", "cam2", "cam3", "cam4",
     )  # fmt: skip
     assert out.returncode == 1 and "3 of 4 cameras calibrated" in out.stdout, out.stdout
     assert "cam2.tif: cannot be read as an image" in out.stderr, out.stderr
     messages = json.loads((tmp_path / "c.json").read_text())["meta"]["messages"]
     assert not any("second look" in m for m in messages), messages
+    assert mc.io.load_json(tmp_path / "c.json")[1] == ["cam1", "cam2", "cam3", "cam4"]
     dist = np.asarray(mc.io.load_json(tmp_path / "c.json")[0].dist)[[0, 2, 3]]
     assert np.all(dist[:, 0] != 0) and np.all(dist[:, 1:] == 0)  # refined, k1 only
 
