@@ -99,6 +99,12 @@ class PlanarCalibration(eqx.Module):
     - `iterations`: Levenberg–Marquardt steps of the refinement (0 with `refine=False`).
     - `result`: its outcome, the integer index of an `optx.RESULTS` member (0 = successful, also
       with `refine=False`); `converged` is `result == 0`, `result_message()` spells it out.
+    - `covariance` `(P, P)`, `standard_errors` `(P,)` (and `std(name)`): of the refined
+      intrinsics and distortion `parameter_names` (those estimated, shared by every view), the
+      views' poses' uncertainty included, `sigma^2` from the residuals (as OpenCV's
+      `calibrateCameraExtended`'s `stdDeviationsIntrinsics`); NaN with `refine=False` or a
+      `solver` of your own. Large ones say the views do not fix a parameter: a lens's
+      distortion fitted from views of a narrow field, extrapolated beyond it.
     """
 
     camera: Camera
@@ -111,6 +117,22 @@ class PlanarCalibration(eqx.Module):
     condition: Float[Array, ""]
     iterations: Int[Array, ""]
     result: Int[Array, ""]
+    covariance: Float[Array, "P P"]
+    parameter_names: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def standard_errors(self) -> Float[Array, " P"]:
+        return _validate.derived(
+            lambda xp, c: xp.sqrt(xp.diagonal(c, axis1=-2, axis2=-1)), self.covariance
+        )
+
+    def std(self, name: str) -> Float[Array, ""]:
+        """The standard error of one parameter, by name (one of `parameter_names`)."""
+        if name not in self.parameter_names:
+            raise ValueError(
+                f"{name!r} is not among the parameters estimated: {self.parameter_names}."
+            )
+        return self.standard_errors[..., self.parameter_names.index(name)]
 
     @property
     def K(self) -> Float[Array, "3 3"]:
@@ -573,6 +595,8 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, tied,
     mask = mask & ok[:, None]
     if solver is None:  # the default: the views' poses eliminated from every step
         return _refine_as_rig(camera, ok, world, pixels, mask, free_shared, tied, loss, max_steps)
+    P = len(parameter_names(camera.lens))
+    unknown = jnp.full((P, P), jnp.nan, camera.R.dtype)  # (a user's solver: no covariance)
     first = camera[0]  # the intrinsics are every view's
     p0 = jnp.concatenate(
         [jnp.stack([first.alpha_u, first.alpha_v, first.u0, first.v0, first.skew]), first.dist]
@@ -600,7 +624,7 @@ def _refine_views(camera, ok, world, pixels, mask, free_shared, free_pose, tied,
         adjoint=adjoint, throw=False,
     )  # fmt: skip
     steps = sol.stats["num_steps"]
-    return _planar_unknowns(sol.value, args), steps, sol.result._value  # noqa: SLF001
+    return _planar_unknowns(sol.value, args), steps, sol.result._value, unknown  # noqa: SLF001
 
 
 def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, tied, loss, max_steps):
@@ -627,14 +651,21 @@ def _refine_as_rig(camera, ok, world, pixels, mask, free_shared, tied, loss, max
         jnp.where(ok[:, None, None], camera.R, eye),
         jnp.where(ok[:, None], camera.t, jnp.array([0.0, 0.0, 1.0], dtype) * distance),
     )
-    y, steps, result, args, _, _ = _rig._refine(  # noqa: SLF001
+    y, steps, result, args, used, normal = _rig._refine(  # noqa: SLF001
         jax.tree_util.tree_map(lambda x: x[None], origin), views, ok[None], ok, distance, world,
         pixels[None], mask[None], movable, free, loss, max_steps, nielsen=False,
     )  # fmt: skip
     cameras, poses = _rig._cameras_and_frames(y, args, free)  # noqa: SLF001
     V = ok.shape[0]
     every = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x[0], (V,) + x.shape[1:]), cameras)
-    return eqx.tree_at(lambda c: (c.R, c.t), every, (poses.R, poses.t)), steps, result
+    every = eqx.tree_at(lambda c: (c.R, c.t), every, (poses.R, poses.t))
+    # the covariance of the camera's parameters, the views' poses' uncertainty in it (the
+    # reduced camera system's inverse: `calibrate_rig`'s `_uncertainty`)
+    residuals = jnp.where(used[0][..., None], every.project(world[None]) - pixels, 0.0)
+    cov = _rig._uncertainty(  # noqa: SLF001
+        *jax.lax.stop_gradient((y, args, normal, residuals[None])), free=free, loss=loss
+    )[0][0]
+    return every, steps, result, cov
 
 
 def _free_masks(distortion, fix, skew, dtype, lens="pinhole"):
@@ -907,6 +938,10 @@ def calibrate_planar(
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
     free_shared, free_pose, tied = _free_masks(distortion, fix, skew, dtype, lens)  # checks names
+    names = parameter_names(lens)  # the reported: the free ones shared by every view
+    shared = [n for n in names if n not in POSE]
+    reported = tuple(n for n, f in zip(shared, free_shared) if f or (n == "alpha_u" and tied))
+    at = np.ix_(*[[names.index(n) for n in reported]] * 2)
     check_loss(loss)
     skew = np.asarray(bool(skew))
     V = pixels.shape[0]
@@ -943,17 +978,18 @@ def calibrate_planar(
             H, seed, status, condition = closed_form(mask)
         ok = _status.ok(status)
         if refine:
-            camera, iterations, result = _refine_views(
+            camera, iterations, result, cov = _refine_views(
                 seed, ok, world, pixels, mask, *refine_options, quick=quick
             )
         else:
             camera, iterations, result = seed, np.zeros((), np.int32), np.zeros((), np.int32)
+            cov = np.full((len(names), len(names)), np.nan)
         finished = _finish(
             seed, camera, world, pixels, mask, ok, max_relative_rms, loss, quick=quick
         )
-        return H, status, condition, iterations, result, *finished
+        return H, status, condition, iterations, result, cov, *finished
 
-    H, status, condition, iterations, result, closed, camera, report, rms, poor = solve(mask)
+    H, status, condition, iterations, result, cov, closed, camera, report, rms, poor = solve(mask)
     # Outside a trace, a refined view that fits out of all proportion (its pose in another
     # minimum, or its points wrong) pulled the intrinsics: the worst such view is left out and
     # the rest solved again, by the same programs, until none is left (one at a time: the
@@ -968,7 +1004,7 @@ def calibrate_planar(
         if not np.asarray(_status.ok(again[1])).any():
             break
         # (the homographies are each view's own: the first solve's stay, the dropped views' too)
-        _, status, condition, iterations, result, closed, camera, report, rms, poor = again
+        _, status, condition, iterations, result, cov, closed, camera, report, rms, poor = again
     if dropped.any():
         status = np.where(dropped, Status.POOR_FIT, np.asarray(status)).astype(np.int32)
     if _validate.is_concrete(status, camera.alpha_u, camera.alpha_v):  # (called eagerly)
@@ -988,4 +1024,6 @@ def calibrate_planar(
         condition=condition,
         iterations=_validate.derived(lambda xp, i: i.astype(xp.int32), iterations),
         result=_validate.derived(lambda xp, r: r.astype(xp.int32), result),
+        covariance=_validate.derived(lambda xp, c: c[at], cov),
+        parameter_names=reported,
     )

@@ -623,3 +623,29 @@ def test_a_batch_of_calibrations_gives_each_its_own_intrinsics():
         alone = mc.calibrate_planar(grid, pixels[i], refine=False)
         np.testing.assert_allclose(batch.K[i], alone.K, rtol=1e-9)
         np.testing.assert_allclose(batch.dist[i], alone.dist, atol=1e-12)
+
+
+def test_standard_errors_are_opencvs_on_zhangs_photographs():
+    """OpenCV's `calibrateCameraExtended` reports the intrinsics' standard deviations; the
+    fisheye trial found none here (a narrow-angle fit extrapolated k1..k4 to 1e3, silently)."""
+    cv2 = pytest.importorskip("cv2")
+    model, pixels = load_zhang()
+    pixels = pixels.astype(np.float32).astype(np.float64)  # (OpenCV's points are float32)
+    out = mc.calibrate_planar(model, pixels, distortion=("k1", "k2"))
+    assert out.parameter_names == ("alpha_u", "alpha_v", "u0", "v0", "k1", "k2")
+    world = np.concatenate([model, np.zeros((len(model), 1))], 1).astype(np.float32)
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
+        [world] * 5, list(pixels.astype(np.float32)), (640, 480), None, None, flags=flags,
+        criteria=criteria,
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(out.K), K, atol=1e-4)  # (OpenCV stops 2e-5 px off)
+    theirs = std.ravel()[[0, 1, 2, 3, 4, 5]]  # fx fy cx cy k1 k2
+    print("ours", np.asarray(out.standard_errors), "OpenCV", theirs)
+    np.testing.assert_allclose(np.asarray(out.standard_errors), theirs, rtol=1e-6)
+    assert float(out.std("k2")) == float(out.standard_errors[5])
+    with pytest.raises(ValueError, match="not among the parameters estimated"):
+        out.std("p1")
+    closed = mc.calibrate_planar(model, pixels, refine=False)
+    assert np.isnan(np.asarray(closed.standard_errors)).all()
