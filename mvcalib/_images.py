@@ -271,7 +271,7 @@ def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
     )
 
 
-def _spare_blobs(labels: Labels, detection, camera, world):
+def _spare_blobs(labels: Labels, detection, camera, world, ids_of):
     """`labels` with the dots it lacks given the blob that no dot took nearest their prediction,
     within `_match._FIRST_GATE` of the dots' spacing and nearer it than any other dot's, where no
     unlabelled dot's image lies close by (one blob for two, `_label.unlabelled_pairs`): for
@@ -298,12 +298,14 @@ def _spare_blobs(labels: Labels, detection, camera, world):
         return labels
     pixels = np.where(added[:, None], blobs[nearest], labels.pixels)
     index = np.where(added, np.asarray(labels.spurious)[nearest], labels.index)
+    ids = ", ".join(str(int(i)) for i in np.asarray(ids_of)[added])
     return dataclasses.replace(
         labels,
         pixels=pixels,
         mask=labels.mask | added,
         index=index,
         spurious=np.setdiff1d(labels.spurious, index[added]),
+        message=labels.message + f"; {int(added.sum())} more from blobs no dot had (ids {ids})",
     )
 
 
@@ -451,7 +453,7 @@ def calibrate_images(
             if ok[i] and labels[i].ok:
                 first = labels[i]
                 if check:  # (a blob that no dot took measures a dot better than a fit)
-                    labels[i] = _spare_blobs(first, detections[i], cameras[i], world)
+                    labels[i] = _spare_blobs(first, detections[i], cameras[i], world, target.ids)
                 try:
                     labels[i] = _second_look(
                         picture, labels[i], target, cameras[i], detection=detections[i],
