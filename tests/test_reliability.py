@@ -236,6 +236,10 @@ def test_condition_number_warns_of_nearly_coplanar_points(camera):
         assert int(result.status) == S.OK
         assert float(result.report.rms) < 1e-4
         conditions.append(float(result.condition))
+        # above 100 the message says so (a benchmark trial: 123 with 0.3 px of noise, the focal
+        # length 12 % off, "calibrated")
+        weak = "calibrated, but its points barely fix it" in result.messages()[0]
+        assert weak == (conditions[-1] > 100), (conditions[-1], result.messages())
     ratios = np.array(conditions[1:]) / conditions[:-1]
     np.testing.assert_allclose(ratios, 10.0, rtol=0.05)
     for flatness in (1e-9, 0.0):
