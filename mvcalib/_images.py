@@ -271,42 +271,48 @@ def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
     )
 
 
-def _spare_blobs(labels: Labels, detection, camera, world, ids_of):
-    """`labels` with the dots it lacks given the blob that no dot took nearest their prediction,
-    within `_match._FIRST_GATE` of the dots' spacing and nearer it than any other dot's, where no
-    unlabelled dot's image lies close by (one blob for two, `_label.unlabelled_pairs`): for
-    `_misplaced` to judge across the images, as the second look's dots beyond the gate. A dot
-    that the target file misplaces by more than the second look's fit reaches (0.6 dot radii)
-    was matched in no image and dropped without a word (a user's trial: 0.5-1 mm, 3-6 px); its
-    blob is there in each, and measures it better than a fit at the edge of its reach."""
-    if detection is None or not labels.ok or not len(labels.spurious) or labels.mask.all():
-        return labels
-    from ._match import _FIRST_GATE, _spacing
+def _spare_blobs(labels: Labels, detection, camera, world, far):
+    """`(labels, taken)`: the dots `labels` lacks, and those it has `far` (beyond the gate),
+    given the blob that no dot took nearest their prediction, within `_match._FIRST_GATE` of
+    the dots' spacing, nearer it than any other dot's, with no other blob half as near again
+    (as `_match._mutual`) and no unlabelled dot's image close by (one blob for two,
+    `_label.unlabelled_pairs`): candidates for `_misplaced` to judge across the images, which
+    drops them unless the target file misplaces the dot. Such a dot, off by more than the second
+    look's fit reaches (0.6 dot radii), was matched in no image and dropped without a word (a
+    user's trial: 0.5-1 mm, 3-6 px), or fitted at the edge of that reach; its blob is there in
+    each image, and measures it."""
+    taken = np.zeros(len(world), bool)
+    candidates = ~labels.mask | far
+    if detection is None or not labels.ok or not len(labels.spurious) or not candidates.any():
+        return labels, taken
+    from ._match import _AMBIGUITY, _FIRST_GATE, _spacing
 
     predicted = np.asarray(camera.project(world), np.float64)
     seen = np.all(np.isfinite(predicted), axis=1)
-    blobs = np.asarray(detection.centroids, np.float64)[labels.spurious]
+    every = np.asarray(detection.centroids, np.float64)
+    spare = np.asarray(labels.spurious)
     reach = _FIRST_GATE * _spacing(predicted[seen])
     pair = _label.unlabelled_pairs(predicted, _label.crowd_reach(detection.major), labels.mask)
-    d = np.linalg.norm(predicted[:, None] - blobs[None], axis=-1)
+    d = np.linalg.norm(predicted[:, None] - every[None], axis=-1)  # (M, K): every blob
     d = np.where(seen[:, None], d, np.inf)
     nearest = np.argmin(d, axis=1)
-    back = np.argmin(d, axis=0)  # each spare blob's nearest prediction, of every dot's
     k = np.arange(len(world))
-    added = ~labels.mask & seen & ~pair & (d[k, nearest] < reach) & (back[nearest] == k)
-    if not added.any():
-        return labels
-    pixels = np.where(added[:, None], blobs[nearest], labels.pixels)
-    index = np.where(added, np.asarray(labels.spurious)[nearest], labels.index)
-    ids = ", ".join(str(int(i)) for i in np.asarray(ids_of)[added])
+    first = d[k, nearest]
+    second = np.partition(d, 1, axis=1)[:, 1] if d.shape[1] > 1 else np.full(len(k), np.inf)
+    back = np.argmin(np.where(seen[:, None], d, np.inf), axis=0)  # each blob's nearest dot
+    taken = (
+        candidates & seen & ~pair & np.isin(nearest, spare) & (first < reach)
+        & (second > _AMBIGUITY * first) & (back[nearest] == k)
+    )  # fmt: skip
+    if not taken.any():
+        return labels, taken
     return dataclasses.replace(
         labels,
-        pixels=pixels,
-        mask=labels.mask | added,
-        index=index,
-        spurious=np.setdiff1d(labels.spurious, index[added]),
-        message=labels.message + f"; {int(added.sum())} more from blobs no dot had (ids {ids})",
-    )
+        pixels=np.where(taken[:, None], every[nearest], labels.pixels),
+        mask=labels.mask | taken,
+        index=np.where(taken, nearest, labels.index),
+        spurious=np.setdiff1d(spare, nearest[taken]),
+    ), taken
 
 
 def calibrate_images(
@@ -452,17 +458,18 @@ def calibrate_images(
         for i, picture in pictures.items():
             if ok[i] and labels[i].ok:
                 first = labels[i]
-                if check:  # (a blob that no dot took measures a dot better than a fit)
-                    labels[i] = _spare_blobs(first, detections[i], cameras[i], world, target.ids)
                 try:
                     labels[i] = _second_look(
-                        picture, labels[i], target, cameras[i], detection=detections[i],
-                        **options,
-                    )  # fmt: skip
+                        picture, first, target, cameras[i], detection=detections[i], **options
+                    )
                 except (ValueError, np.linalg.LinAlgError):  # (keep what was matched)
                     pass
-                if check:
+                if check:  # (a blob that no dot took measures a dot better than a fit)
                     far[i] = _beyond_gate(labels[i], first, cameras[i], world, look)
+                    labels[i], spare = _spare_blobs(
+                        labels[i], detections[i], cameras[i], world, far[i]
+                    )
+                    far[i] |= spare
         if check:
             off, points, (pixels, mask, calibration) = _misplaced(world, labels, far, calibrated)
             # The dots beyond the gate that the target does not explain are dropped.
