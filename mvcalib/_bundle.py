@@ -7,6 +7,7 @@ import dataclasses
 import functools
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -856,10 +857,13 @@ def bundle_adjust(
     rounds, refinement, size = [], None, 0
     for threshold in thresholds:
         start = time.perf_counter()
-        # (any RMS: the round's threshold judges each observation)
-        points = _triangulate.triangulate(
-            cameras, np.where(seen[..., None], px, np.nan), max_rms=np.inf
-        )
+        # (any RMS: the round's threshold judges each observation; a mirrored world is said
+        # below, in the error's words)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "triangulate: .* lie behind")
+            points = _triangulate.triangulate(
+                cameras, np.where(seen[..., None], px, np.nan), max_rms=np.inf
+            )
         X = np.asarray(points.points)
         error = np.linalg.norm(np.asarray(cameras.project(X)) - px, axis=-1)
         use = seen & (error < threshold)

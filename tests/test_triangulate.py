@@ -146,18 +146,22 @@ def test_diagnostics_flag_what_cannot_be_trusted():
 
 def test_a_mirrored_world_is_behind_every_camera_and_said_so():
     """The Oxford house's cameras see a mirrored world (a user's trial: every point accurate,
-    every point not ok, nothing saying why): `in_front` tells."""
+    every point not ok, nothing saying why): `in_front` tells, and a warning."""
     cameras, world = ring(3, seed=6)
     pixels = np.array(cameras.project(world))
     mask = np.ones(pixels.shape[:2], bool)
     mask[1:, 0] = False  # point 0 seen once
-    out = mc.triangulate(cameras, pixels, mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = mc.triangulate(cameras, pixels, mask)
     assert not out.in_front[0] and np.asarray(out.in_front[1:]).all()
     flip = np.diag([1.0, 1.0, -1.0])  # the world's z mirrored, so that the pixels stay
     mirrored = mc.Camera(cameras.alpha_u, cameras.alpha_v, cameras.u0, cameras.v0,
                          -cameras.R @ flip, -cameras.t)  # fmt: skip
     assert np.allclose(mirrored.project(world @ flip), pixels, atol=1e-9)  # (z = -X_c's)
-    behind = mc.triangulate(mirrored, pixels, mask)
+    with pytest.warns(UserWarning, match="points lie behind the cameras") as caught:
+        behind = mc.triangulate(mirrored, pixels, mask)
+    assert len(caught) == 1 and caught[0].filename == __file__
     assert np.abs(np.asarray(behind.points[1:]) - (world @ flip)[1:]).max() < 1e-9
     assert not np.asarray(behind.in_front).any() and not np.asarray(behind.ok).any()
 
