@@ -191,9 +191,8 @@ def _polished(cameras: Camera, X0, pixels, m, max_steps):
         J = jax.vmap(lambda e: jax.jvp(residuals, (X,), (jnp.broadcast_to(e, X.shape),))[1])(eye)
         H = [[jnp.sum(J[a] * J[b], axis=(0, 2)) for b in range(3)] for a in range(3)]
         g = [jnp.sum(J[a] * r, axis=(0, 2)) for a in range(3)]
-        trace = H[0][0] + H[1][1] + H[2][2]
         A = [[H[a][b] * (1.0 + lam) if a == b else H[a][b] for b in range(3)] for a in range(3)]
-        L = _small.cholesky(A, jnp.finfo(dtype).eps * trace + jnp.finfo(dtype).tiny)
+        L = _definite_factor(A, H)
         delta = jnp.stack(_small.cho_solve(L, [-x for x in g]), -1)  # (N, 3)
         trial = X + delta
         f_trial = cost(residuals(trial))
@@ -223,6 +222,14 @@ def _polished(cameras: Camera, X0, pixels, m, max_steps):
     return step((X, jnp.zeros(n, dtype), f, jnp.zeros(n, bool), k))[0]
 
 
+def _definite_factor(rows, undamped):
+    """`_small.cholesky` of the symmetric 3 x 3 `rows` (entries `(N,)`), its pivots raised to
+    `eps` of the trace of `undamped` (the same matrix before damping): the factor of a nearby
+    definite matrix where a point's is singular."""
+    trace = undamped[0][0] + undamped[1][1] + undamped[2][2]
+    return _small.cholesky(rows, jnp.finfo(trace.dtype).eps * trace + jnp.finfo(trace.dtype).tiny)
+
+
 @_polished.defjvp
 def _polished_jvp(max_steps, primals, tangents):
     """The implicit derivative of each point's minimum: `dX = -H^-1 d(grad)`, with `H` the
@@ -248,8 +255,7 @@ def _polished_jvp(max_steps, primals, tangents):
         in_axes=(0, 1, 1, 1),
     )(X, pixels, d_pixels, m)
     rows = [[H[:, a, b] for b in range(3)] for a in range(3)]
-    trace = rows[0][0] + rows[1][1] + rows[2][2]
-    L = _small.cholesky(rows, jnp.finfo(X.dtype).eps * trace + jnp.finfo(X.dtype).tiny)
+    L = _definite_factor(rows, rows)
     inverse = jnp.stack([jnp.stack(_small.cho_solve(L, list(e)), -1) for e in jnp.eye(3)], -1)
     seen = jnp.sum(m, 0) >= 2
     inverse = jnp.where(seen[:, None, None], inverse, 0.0)  # (N, 3, 3)
