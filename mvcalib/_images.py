@@ -274,8 +274,8 @@ def _without(labels: Labels, drop: np.ndarray, target: Target) -> Labels:
 def _spare_blobs(labels: Labels, detection, camera, world, far):
     """`(labels, taken)`: the dots `labels` lacks, and those it has `far` (beyond the gate),
     given the blob that no dot took nearest their prediction, within `_match._FIRST_GATE` of
-    the dots' spacing, nearer it than any other dot's, with no other blob half as near again
-    (as `_match._mutual`) and no unlabelled dot's image close by (one blob for two,
+    the dots' spacing, nearer it than any other dot's, with no other blob nearly as near
+    (`_match._mutual`) and no unlabelled dot's image close by (one blob for two,
     `_label.unlabelled_pairs`): candidates for `_misplaced` to judge across the images, which
     drops them unless the target file misplaces the dot. Such a dot, off by more than the second
     look's fit reaches (0.6 dot radii), was matched in no image and dropped without a word (a
@@ -285,25 +285,15 @@ def _spare_blobs(labels: Labels, detection, camera, world, far):
     candidates = ~labels.mask | far
     if detection is None or not labels.ok or not len(labels.spurious) or not candidates.any():
         return labels, taken
-    from ._match import _AMBIGUITY, _FIRST_GATE, _spacing
+    from ._match import _FIRST_GATE, _mutual, _spacing
 
     predicted = np.asarray(camera.project(world), np.float64)
     seen = np.all(np.isfinite(predicted), axis=1)
     every = np.asarray(detection.centroids, np.float64)
     spare = np.asarray(labels.spurious)
-    reach = _FIRST_GATE * _spacing(predicted[seen])
+    nearest = _mutual(predicted, every, _FIRST_GATE * _spacing(predicted[seen]))
     pair = _label.unlabelled_pairs(predicted, _label.crowd_reach(detection.major), labels.mask)
-    d = np.linalg.norm(predicted[:, None] - every[None], axis=-1)  # (M, K): every blob
-    d = np.where(seen[:, None], d, np.inf)
-    nearest = np.argmin(d, axis=1)
-    k = np.arange(len(world))
-    first = d[k, nearest]
-    second = np.partition(d, 1, axis=1)[:, 1] if d.shape[1] > 1 else np.full(len(k), np.inf)
-    back = np.argmin(np.where(seen[:, None], d, np.inf), axis=0)  # each blob's nearest dot
-    taken = (
-        candidates & seen & ~pair & np.isin(nearest, spare) & (first < reach)
-        & (second > _AMBIGUITY * first) & (back[nearest] == k)
-    )  # fmt: skip
+    taken = candidates & ~pair & (nearest >= 0) & np.isin(nearest, spare)
     if not taken.any():
         return labels, taken
     return dataclasses.replace(
