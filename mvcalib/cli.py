@@ -320,10 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
     convert = command(
         "convert",
         "a rig file in another format",
-        "Read a rig (mvcalib's JSON, OpenCV's YAML, a COLMAP text model, caliscope's or "
-        "aniposelib's TOML) and write it as JSON, OpenCV's YAML, a COLMAP model or aniposelib's "
-        "TOML. Cameras that are not calibrated (NaN, or a status other than OK in a JSON rig) "
-        "are kept in JSON, with their status, RMS and notes, and left out of the others.",
+        "Read a rig (mvcalib's JSON, OpenCV's or Kalibr's YAML, a COLMAP text model, "
+        "caliscope's or aniposelib's TOML) and write it as JSON, OpenCV's YAML, a COLMAP model, "
+        "aniposelib's TOML or Kalibr's camchain.yaml. Cameras that are not calibrated (NaN, "
+        "or a status other than OK in a JSON rig) are kept in JSON, with their status, RMS and "
+        "notes, and left out of the others.",
     )
     convert.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
     _rig_output(convert, "every camera", "--image-size")
@@ -576,9 +577,15 @@ def _check_usage(parser, args) -> None:
         _check_format(parser, args, suffix)
         if args.format in _SIZED and getattr(args, "image_size", 0) is None:
             parser.error(f"--format {args.format} needs --image-size WIDTH HEIGHT")
-    no_skew = {"colmap": "COLMAP's", "opencv": "OpenCV's", "aniposelib": "aniposelib's"}.get(
-        getattr(args, "format", None)
-    )
+    no_skew = {
+        "colmap": "COLMAP's",
+        "opencv": "OpenCV's",
+        "aniposelib": "aniposelib's",
+        "kalibr": "Kalibr's",
+    }.get(getattr(args, "format", None))
+    if getattr(args, "format", None) == "kalibr" and "k3" in (getattr(args, "distortion", 0) or ()):
+        if not getattr(args, "fisheye", False):  # (refused before the work, not after it)
+            parser.error("--format kalibr: Kalibr's radtan distortion has k1 k2 p1 p2, not k3")
     if args.command == "calibrate-images" and no_skew and not args.refine:
         parser.error(
             f"--format {args.format} needs --refine ({no_skew} cameras have no skew; the DLT's "
@@ -628,7 +635,8 @@ def _check_usage(parser, args) -> None:
 
 
 _FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv", ".toml": "aniposelib"}  # --out's
-_SIZED = ("colmap", "aniposelib")  # the formats whose cameras need an image size
+_SUFFIXES = {"kalibr": (".yaml", ".yml")}  # a format's files, where not `_FORMATS`'s
+_SIZED = ("colmap", "aniposelib", "kalibr")  # the formats whose cameras need an image size
 
 
 def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
@@ -636,10 +644,11 @@ def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
     parser.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
     parser.add_argument(
         "--format",
-        choices=("json", "opencv", "colmap", "aniposelib"),
+        choices=("json", "opencv", "colmap", "aniposelib", "kalibr"),
         help=f"json ({json_holds}), opencv (FileStorage YAML), colmap (text model in the "
-        f"folder --out; needs {colmap_needs}) or aniposelib (calibration.toml; needs it too); "
-        "default from --out: .json, .yml or .yaml, .toml",
+        f"folder --out; needs {colmap_needs}), aniposelib (calibration.toml; needs it too) or "
+        "kalibr (Kalibr's camchain.yaml; needs it too); default from --out: .json, .yml or "
+        ".yaml (opencv), .toml",
     )
 
 
@@ -669,9 +678,12 @@ def _check_format(parser, args, suffix: str) -> None:
                 "--format colmap"
             )
         args.format = _FORMATS[suffix]
-    elif args.format != "colmap" and _FORMATS.get(suffix) != args.format:
-        wanted = " or ".join(k for k, v in _FORMATS.items() if v == args.format)
-        parser.error(f"--format {args.format} writes a {wanted} file; got --out {args.out}")
+    elif args.format != "colmap":
+        own = [k for k, v in _FORMATS.items() if v == args.format]
+        suffixes = _SUFFIXES.get(args.format, own)
+        if suffix not in suffixes:
+            wanted = " or ".join(suffixes)
+            parser.error(f"--format {args.format} writes a {wanted} file; got --out {args.out}")
 
 
 class _PipeSafe:
@@ -767,14 +779,14 @@ def _progress(args):
 
 # ---------------------------------------------------------------------------- shared helpers
 _RIGS = (
-    "a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), a COLMAP text model (a folder), or "
-    "caliscope's camera_array.toml or aniposelib's calibration.toml"
+    "a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), Kalibr's camchain.yaml, a COLMAP text "
+    "model (a folder), or caliscope's camera_array.toml or aniposelib's calibration.toml"
 )
 
 
 def _load_rig(path, *, record: bool = False):
-    """`(cameras (C,), names)` from a JSON rig, an OpenCV YAML file, a COLMAP folder, or
-    caliscope's or aniposelib's TOML; `ValueError` saying which formats are read otherwise.
+    """`(cameras (C,), names)` from a JSON rig, an OpenCV or Kalibr YAML file, a COLMAP folder,
+    or caliscope's or aniposelib's TOML; `ValueError` saying which formats are read otherwise.
     With `record`, `(cameras, names, record)`: a JSON rig's stored status, RMS and meta
     (`io.load_json(..., record=True)`), None for the other formats."""
     import jax
@@ -786,6 +798,8 @@ def _load_rig(path, *, record: bool = False):
     stored = []  # (a JSON rig's record, read with it)
     if path.is_dir():
         cameras, names = io.load_colmap(path)
+    elif suffix in (".yml", ".yaml") and _is_kalibr(path):
+        cameras, names = io.load_kalibr(path)
     elif suffix in (".yml", ".yaml"):
         cameras, names = io.load_opencv(path)
     elif suffix == ".toml":
@@ -826,6 +840,16 @@ def _convert(args) -> int:
         left = [f"{n} ({Status(s).name})" for n, s in zip(names, status) if s != Status.OK]
         print(f"left out, not calibrated: {', '.join(left)}", file=sys.stderr)
     return 0
+
+
+def _is_kalibr(path: pathlib.Path) -> bool:
+    """Whether a YAML file is Kalibr's camera chain (a top-level `cam0:` map with
+    `camera_model`), not OpenCV's FileStorage."""
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError:
+        return False  # (the reader says why)
+    return bool(re.search(r"^cam0:\s*$", text, re.M)) and "camera_model:" in text
 
 
 def _load_toml_rig(path: pathlib.Path):
@@ -945,9 +969,10 @@ def _calibrate(args) -> int:
 
 def _write_rig(args, cameras, names, status, rms, meta) -> int:
     """The rig to `args.out` in `args.format`: JSON holds every camera with its status, RMS and
-    `meta`; OpenCV's YAML, COLMAP's model and aniposelib's TOML the calibrated ones. Returns how
-    many were written. Where no camera was calibrated nothing is written (a rig file there,
-    perhaps a good one from an earlier run, was replaced by one of NaN cameras)."""
+    `meta`; OpenCV's YAML, COLMAP's model, aniposelib's TOML and Kalibr's YAML the calibrated
+    ones. Returns how many were written. Where no camera was calibrated nothing is written (a
+    rig file there, perhaps a good one from an earlier run, was replaced by one of NaN
+    cameras)."""
     import numpy as np
 
     from . import io
@@ -967,6 +992,9 @@ def _write_rig(args, cameras, names, status, rms, meta) -> int:
         )
     elif args.format == "aniposelib":
         io.save_aniposelib(out, cameras, args.image_size, names=names)
+    elif args.format == "kalibr":
+        topics = [f"/{name}/image_raw" for name in _unique(map(_opencv_name, names))]
+        io.save_kalibr(out, cameras, args.image_size, topics=topics)
     else:
         io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
     return len(keep)

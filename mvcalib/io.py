@@ -33,7 +33,7 @@ __all__ = [
     "load_colmap", "write_atomic", "save_aniposelib", "load_aniposelib", "Correspondences",
     "save_correspondences", "load_correspondences", "Observations", "save_observations",
     "load_observations", "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
-    "load_clicks", "load_openptv_calibration",
+    "load_clicks", "load_openptv_calibration", "save_kalibr", "load_kalibr",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -877,6 +877,154 @@ def _data_lines(path: pathlib.Path) -> list[str]:
     if path.name == "images.txt":  # keep empty 2-D point lines: they pair with image lines
         return [ln for ln in lines if not ln.startswith("#")]
     return [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+
+
+# ---------------------------------------------------------------------------- Kalibr camchain
+# Kalibr's lens models for mvcalib's: the projection, and the distortion with its coefficients
+# in mvcalib's order (radtan: k1 k2 r1 r2 = OpenCV's k1 k2 p1 p2; equidistant: cv2.fisheye's).
+_KALIBR_MODEL = {"pinhole": "radtan", "fisheye": "equidistant"}
+_KALIBR_LENS = {"radtan": "pinhole", "equidistant": "fisheye", "none": "pinhole"}
+
+
+def _kalibr_list(values) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def save_kalibr(path, cameras: Camera, image_size, *, topics=None) -> pathlib.Path:
+    """Save a rig as Kalibr's camera chain (`camchain.yaml`), the file robotics tools read for a
+    multi-camera rig (Kalibr, OpenVINS, VINS-Fusion, ORB-SLAM3's converters), atomically.
+
+    Camera `i` is the map `cam{i}`: `camera_model: pinhole`, `intrinsics: [fu, fv, pu, pv]`,
+    `distortion_model` (`radtan`: k1 k2 p1 p2 for a pinhole, whose k3 must be zero;
+    `equidistant`: k1 k2 k3 k4 for a fisheye, as `cv2.fisheye`), `distortion_coeffs`,
+    `resolution: [width, height]` (`image_size`), `rostopic` (`topics[i]`, default
+    `/cam{i}/image_raw`), and from the second camera on `T_cn_cnm1`, the 4 x 4 transform from
+    the previous camera's frame to this one's (`x_cn = T x_cnm1`). Pixels are OpenCV's (the
+    first pixel's centre at 0, 0), as mvcalib's. Kalibr has no skew and no world frame: a camera
+    with skew is refused, and the rig's pose in the world is not written (`load_kalibr` puts
+    `cam0` at the origin). A camera with no calibration (NaN) is refused: the chain would break
+    there; keep the calibrated ones (`cameras[ok]`). Numbers are Python's shortest exact
+    representation: reading back gives the same doubles.
+
+    **Example:**
+
+    ```python
+    >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras
+    >>> path = mc.io.save_kalibr(pathlib.Path(tempfile.mkdtemp()) / "camchain.yaml", rig,
+    ...                          (1000, 1100))
+    >>> print(path.read_text().splitlines()[1])
+      camera_model: pinhole
+    >>> back, names = mc.io.load_kalibr(path)  # (reading needs PyYAML)
+    >>> names, bool(np.allclose(back.K, rig.K))
+    (['cam0', 'cam1', 'cam2'], True)
+
+    ```
+    """
+    _check_cameras(cameras, "save_kalibr")
+    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
+    if rig.batch_shape == ():
+        rig = jax.tree_util.tree_map(lambda a: a[None], rig)
+    if len(rig.batch_shape) != 1:
+        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    n = rig.batch_shape[0]
+    failed = [i for i in range(n) if not all(np.isfinite(x[i]).all() for x in _fields(rig))]
+    if failed:
+        raise ValueError(
+            f"camera(s) {failed} have no calibration (NaN): Kalibr's chain of relative poses "
+            "would break there; save the calibrated ones (`cameras[ok]`)."
+        )
+    if np.any(rig.skew != 0):
+        raise ValueError("Kalibr's camera models have no skew; refine with skew=False first.")
+    if rig.lens == "pinhole" and np.any(rig.dist[:, 4] != 0):
+        raise ValueError(
+            "Kalibr's radtan distortion has k1 k2 p1 p2, not k3: calibrate with "
+            "distortion=('k1', 'k2', 'p1', 'p2') (refine's default)."
+        )
+    width, height = (int(v) for v in image_size)
+    topics = [f"/cam{i}/image_raw" for i in range(n)] if topics is None else list(topics)
+    if len(topics) != n:
+        raise ValueError(f"{len(topics)} topics for {n} cameras.")
+    lines = []
+    for i in range(n):
+        lines.append(f"cam{i}:")
+        if i > 0:  # x_i = R_i R_{i-1}^T (x_{i-1} - t_{i-1}) + t_i
+            R = rig.R[i] @ rig.R[i - 1].T
+            T = np.block([[R, (rig.t[i] - R @ rig.t[i - 1])[:, None]], [np.eye(4)[3]]])
+            lines += ["  T_cn_cnm1:"] + [f"  - {_kalibr_list(row)}" for row in T]
+        intrinsics = [rig.alpha_u[i], rig.alpha_v[i], rig.u0[i], rig.v0[i]]
+        coeffs = rig.dist[i] if rig.lens == "fisheye" else rig.dist[i, :4]
+        lines += [
+            "  camera_model: pinhole",
+            f"  intrinsics: {_kalibr_list(intrinsics)}",
+            f"  distortion_model: {_KALIBR_MODEL[rig.lens]}",
+            f"  distortion_coeffs: {_kalibr_list(coeffs)}",
+            f"  resolution: [{width}, {height}]",
+            f"  rostopic: {topics[i]}",
+        ]
+    return write_atomic(path, "\n".join(lines) + "\n")
+
+
+def _fields(camera: Camera):
+    return (camera.alpha_u, camera.alpha_v, camera.u0, camera.v0, camera.R, camera.t, camera.dist)
+
+
+@_reads_rig
+def load_kalibr(path) -> tuple[Camera, list[str]]:
+    """Read Kalibr's camera chain (`camchain.yaml`, or `camchain-imucam.yaml`, whose IMU terms
+    are left out): `(cameras, names)`, the cameras `cam0, cam1, ...` in the frame of `cam0`,
+    each placed by its `T_cn_cnm1`. Read: `camera_model: pinhole` with `distortion_model`
+    `radtan` (a pinhole lens; k3 zero), `equidistant` (a fisheye) or `none` (a pinhole without
+    distortion). Kalibr's other models (omni, ds, eucm; fov) have no mvcalib lens and are
+    refused, as is a rig mixing pinhole and fisheye lenses. Needs PyYAML (`pip install
+    pyyaml`): Kalibr's files are written by it, in its flow or block style."""
+    try:
+        import yaml
+    except ImportError:
+        raise ImportError("reading Kalibr's YAML needs PyYAML: `pip install pyyaml`.") from None
+    path = pathlib.Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding=ENCODING))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        raise ValueError(f"{path}: cannot be read as YAML ({error})") from None
+    names = sorted(
+        (k for k in (data if isinstance(data, dict) else {}) if re.fullmatch(r"cam\d+", str(k))),
+        key=lambda k: int(k[3:]),
+    )
+    if not names or names != [f"cam{i}" for i in range(len(names))]:
+        raise ValueError(f"{path}: not a Kalibr camera chain (maps cam0, cam1, ...); got {names}.")
+    fields, lenses = [], []
+    R, t = np.eye(3), np.zeros(3)
+    for i, name in enumerate(names):
+        cam = data[name]
+        where = f"{path}: {name}"
+        try:
+            projection, model = cam["camera_model"], cam.get("distortion_model", "none")
+            fu, fv, pu, pv = (float(v) for v in cam["intrinsics"])
+            coeffs = [float(v) for v in cam.get("distortion_coeffs", [])]
+            T = np.asarray(cam["T_cn_cnm1"], dtype=float) if i > 0 else np.eye(4)
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"{where} is malformed ({type(error).__name__}: {error}).") from None
+        if projection != "pinhole" or model not in _KALIBR_LENS:
+            raise ValueError(
+                f"{where}: camera_model {projection!r} with distortion_model {model!r}; mvcalib "
+                "reads pinhole with radtan, equidistant or none."
+            )
+        lens = _KALIBR_LENS[model]
+        expected = {"radtan": 4, "equidistant": 4, "none": 0}[model]
+        if len(coeffs) != expected or T.shape != (4, 4):
+            raise ValueError(
+                f"{where}: {model} has {expected} distortion_coeffs and T_cn_cnm1 is 4 x 4; "
+                f"got {len(coeffs)} and {T.shape}."
+            )
+        _check_rotations(path, T[None, :3, :3], [name])
+        R, t = T[:3, :3] @ R, T[:3, :3] @ t + T[:3, 3]
+        dist = coeffs if lens == "fisheye" else [*coeffs, 0.0] if coeffs else [0.0] * 5
+        fields.append((fu, fv, pu, pv, R, t, dist))
+        lenses.append(lens)
+    lens = _one_lens(path, lenses, names)
+    fu, fv, pu, pv, R, t, dist = (np.asarray(v, dtype=float) for v in zip(*fields))
+    return Camera(fu, fv, pu, pv, R, t, dist=dist, lens=lens), names
 
 
 # ---------------------------------------------------------------------------- correspondences

@@ -5,6 +5,7 @@ are also run in-process through `cli.main`, which is faster and the same code.""
 import csv
 import json
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -360,8 +361,9 @@ def files(tmp_path, monkeypatch, cache_off):
          "neither.toml: neither caliscope's camera_array.toml ([cameras.<id>] tables) nor "
          "aniposelib's calibration.toml ([cam_N] tables)"),
         (["report", "rig.txt", "corr.csv"], 2,
-         "); a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), a COLMAP text model (a "
-         "folder), or caliscope's camera_array.toml or aniposelib's calibration.toml."),
+         "); a rig is mvcalib's JSON, OpenCV YAML (.yml, .yaml), Kalibr's camchain.yaml, a "
+         "COLMAP text model (a folder), or caliscope's camera_array.toml or aniposelib's "
+         "calibration.toml."),
         (["calibrate-rig", "obs.csv", "--intrinsics", "neither.toml", "--out", "r.json"], 2,
          "neither caliscope's camera_array.toml"),
         (["calibrate-rig", "obs.csv", "--intrinsics", "corr.csv", "--out", "r.json"], 2,
@@ -463,6 +465,34 @@ def test_convert_writes_aniposelibs_calibration_toml(files, capsys):
     world = mc.targets.box_corner().points
     assert got == names
     np.testing.assert_allclose(back.project(world), rig.project(world), rtol=0, atol=1e-9)
+
+
+def test_convert_writes_kalibr_s_camchain_and_reads_it_back(files, capsys):
+    """`--format kalibr` (a .yaml, read back as Kalibr's, not OpenCV's, by its `cam0:` map):
+    the rig in camera a's frame, projecting as before; refused up front where it cannot hold
+    the calibration asked for (k3), before any work."""
+    rig, _ = mc.io.load_json("rig.json")
+    args = ["convert", "rig.json", "--format", "kalibr", "--out", "camchain.yaml", "--quiet"]
+    with pytest.raises(SystemExit) as exit:
+        cli.main(args)
+    assert exit.value.code == 2 and "--format kalibr needs --image-size" in capsys.readouterr().err
+    assert cli.main([*args, "--image-size", "1000", "1100"]) == 0
+    assert "2 cameras of rig.json written to camchain.yaml (kalibr)" in capsys.readouterr().out
+    assert "rostopic: /b/image_raw" in pathlib.Path("camchain.yaml").read_text()
+    back, names = cli._load_rig("camchain.yaml")
+    world = np.asarray(mc.targets.box_corner().points)
+    in_a = world @ np.asarray(rig.R[0]).T + np.asarray(rig.t[0])
+    assert names == ["cam0", "cam1"]
+    np.testing.assert_allclose(back.project(in_a), rig.project(world), rtol=0, atol=1e-9)
+    for wrong, message in (
+        (["convert", "rig.json", "--format", "kalibr", "--out", "r.json"], "a .yaml or .yml"),
+        (["calibrate", "corr.csv", "--distortion", "k1,k2,k3", "--format", "kalibr", "--out",
+          "r.yaml", "--image-size", "1000", "1100"], "not k3"),
+    ):  # fmt: skip
+        with pytest.raises(SystemExit) as exit:
+            cli.main(wrong)
+        assert exit.value.code == 2 and message in capsys.readouterr().err
+    assert not pathlib.Path("r.yaml").exists()
 
 
 def test_convert_keeps_a_json_rigs_statuses_rms_and_meta(files, capsys):

@@ -293,7 +293,9 @@ def test_saving_a_calibration_result_says_to_pass_its_cameras(tmp_path):
     assert not list(tmp_path.iterdir())  # nothing written, no folder made
 
 
-@pytest.mark.parametrize("save", ["save_json", "save_opencv", "save_colmap", "save_aniposelib"])
+@pytest.mark.parametrize(
+    "save", ["save_json", "save_opencv", "save_colmap", "save_aniposelib", "save_kalibr"]
+)
 def test_writers_refuse_a_camera_no_reader_would_load(tmp_path, save):
     """A JAX user's trial: a Camera-shaped gradient (`eqx.filter_grad`) was written by
     `save_json` and refused later by `load_json` (its R is no rotation). The writers refuse it,
@@ -302,10 +304,121 @@ def test_writers_refuse_a_camera_no_reader_would_load(tmp_path, save):
     cameras = eqx.tree_at(lambda c: (c.skew, c.dist), rig.cameras, replace_fn=jnp.zeros_like)
     gradient = eqx.filter_grad(lambda c: c.project(rig.world).sum())(cameras)
     path = tmp_path / ("rig.toml" if save == "save_aniposelib" else "rig")
-    sized = save in ("save_colmap", "save_aniposelib")
+    sized = save in ("save_colmap", "save_aniposelib", "save_kalibr")
     write = lambda c: getattr(mc.io, save)(path, c, *([(1000, 1100)] if sized else []))  # noqa: E731
     with pytest.raises(ValueError, match=rf"{save}: camera 0: R is not a rotation"):
         write(gradient)
     with pytest.raises(TypeError, match="concrete cameras, outside jax.jit"):
         jax.jit(write)(cameras)
     write(cameras)  # (the cameras themselves are written)
+
+
+# ---------------------------------------------------------------------------- Kalibr camchain
+def _lensed_rig(lens):
+    """A rig of 4 cameras with distortion and no skew, as Kalibr holds them."""
+    rig = mc.synthetic.random_rig(jax.random.key(3), n_cameras=4)
+    if lens == "pinhole":
+        dist = np.array([[-0.21, 0.05, 1e-3, -2e-3, 0.0]] * 4)
+    else:
+        dist = np.array([[0.05, -0.01, 3e-3, -1e-3]] * 4)
+    cameras = eqx.tree_at(lambda c: c.skew, rig.cameras, replace_fn=jnp.zeros_like)
+    return mc.Camera(*(getattr(cameras, f) for f in ("alpha_u", "alpha_v", "u0", "v0", "R", "t")),
+                     dist=dist, lens=lens), rig.world  # fmt: skip
+
+
+def test_kalibr_chain_holds_each_camera_from_the_previous(tmp_path):
+    """Kalibr's `T_cn_cnm1` maps a point from camera n-1's frame to camera n's; checked by
+    reading the file with PyYAML and moving points with it, not with `load_kalibr`."""
+    import yaml
+
+    cameras, world = _lensed_rig("pinhole")
+    path = mc.io.save_kalibr(tmp_path / "camchain.yaml", cameras, (1000, 1100))
+    data = yaml.safe_load(path.read_text())
+    assert sorted(data) == ["cam0", "cam1", "cam2", "cam3"] and "T_cn_cnm1" not in data["cam0"]
+    frames = [np.asarray(world) @ np.asarray(cameras.R[i]).T + np.asarray(cameras.t[i])
+              for i in range(4)]  # fmt: skip
+    for i in range(1, 4):
+        T = np.asarray(data[f"cam{i}"]["T_cn_cnm1"])
+        np.testing.assert_allclose(frames[i - 1] @ T[:3, :3].T + T[:3, 3], frames[i], atol=1e-9)
+        np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    cam = data["cam2"]
+    assert cam["camera_model"] == "pinhole" and cam["distortion_model"] == "radtan"
+    assert cam["intrinsics"] == [float(cameras.alpha_u[2]), float(cameras.alpha_v[2]),
+                                 float(cameras.u0[2]), float(cameras.v0[2])]  # fmt: skip
+    assert cam["distortion_coeffs"] == [-0.21, 0.05, 1e-3, -2e-3]
+    assert cam["resolution"] == [1000, 1100] and cam["rostopic"] == "/cam2/image_raw"
+
+
+@pytest.mark.parametrize("lens", ["pinhole", "fisheye"])
+def test_kalibr_round_trip_projects_as_before_in_cam0_s_frame(tmp_path, lens):
+    """Kalibr has no world frame: the rig comes back in camera 0's, where every camera projects
+    the points as before (to 1e-9 px) and camera 0 sits at the origin."""
+    cameras, world = _lensed_rig(lens)
+    path = mc.io.save_kalibr(tmp_path / "camchain.yaml", cameras, (1000, 1100))
+    back, names = mc.io.load_kalibr(path)
+    assert names == ["cam0", "cam1", "cam2", "cam3"] and back.lens == lens
+    in_cam0 = np.asarray(world) @ np.asarray(cameras.R[0]).T + np.asarray(cameras.t[0])
+    np.testing.assert_allclose(back.project(in_cam0), cameras.project(world), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(back.R[0], np.eye(3), atol=1e-15)
+    np.testing.assert_array_equal(back.dist, cameras.dist)
+    np.testing.assert_array_equal(back.K, cameras.K)
+
+
+def test_kalibr_refuses_what_its_file_cannot_hold(tmp_path):
+    cameras, _ = _lensed_rig("pinhole")
+    path = tmp_path / "camchain.yaml"
+    skewed = eqx.tree_at(lambda c: c.skew, cameras, replace_fn=lambda s: s + 0.5)
+    with pytest.raises(ValueError, match="no skew"):
+        mc.io.save_kalibr(path, skewed, (1000, 1100))
+    k3 = eqx.tree_at(lambda c: c.dist, cameras, replace_fn=lambda d: d.at[:, 4].set(0.01))
+    with pytest.raises(ValueError, match="k1 k2 p1 p2, not k3"):
+        mc.io.save_kalibr(path, k3, (1000, 1100))
+    failed = eqx.tree_at(lambda c: c.u0, cameras, replace_fn=lambda u: u.at[2].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"camera\(s\) \[2\] have no calibration"):
+        mc.io.save_kalibr(path, failed, (1000, 1100))
+    with pytest.raises(ValueError, match="3 topics for 4 cameras"):
+        mc.io.save_kalibr(path, cameras, (1000, 1100), topics=["/a", "/b", "/c"])
+    assert not path.exists()
+
+
+def test_load_kalibr_reads_kalibr_s_block_style_and_imu_chains(tmp_path):
+    """Kalibr writes its files with PyYAML, in block style in its recent versions; a
+    camchain-imucam.yaml adds IMU terms, left out. Values as in Kalibr's EuRoC example."""
+    import yaml
+
+    T = [[0.99999, -0.00230, -0.00034, -0.11007], [0.00231, 0.99994, 0.01021, 0.00040],
+         [0.00032, -0.01021, 0.99995, -0.00085], [0.0, 0.0, 0.0, 1.0]]  # fmt: skip
+    R, _ = np.linalg.qr(np.asarray(T)[:3, :3])
+    R *= np.sign(np.diag(R))  # (the nearest rotation: the printed digits are rounded)
+    T = np.block([[R, np.asarray(T)[:3, 3:]], [np.eye(4)[3]]])
+    chain = {
+        "cam0": {"T_cam_imu": np.eye(4).tolist(), "cam_overlaps": [1], "camera_model": "pinhole",
+                 "distortion_coeffs": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
+                 "distortion_model": "radtan", "intrinsics": [458.654, 457.296, 367.215, 248.375],
+                 "resolution": [752, 480], "rostopic": "/cam0/image_raw"},
+        "cam1": {"T_cn_cnm1": T.tolist(), "cam_overlaps": [0], "camera_model": "pinhole",
+                 "distortion_coeffs": [0.1, 0.01, 0.002, 0.001], "distortion_model": "equidistant",
+                 "intrinsics": [457.587, 456.134, 379.999, 255.238], "resolution": [752, 480],
+                 "rostopic": "/cam1/image_raw"},
+    }  # fmt: skip
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(yaml.safe_dump(chain, default_flow_style=False))
+    with pytest.raises(ValueError, match="different lenses"):  # (cam1 is a fisheye)
+        mc.io.load_kalibr(path)
+    chain["cam1"]["distortion_model"] = "radtan"
+    path.write_text(yaml.safe_dump(chain, default_flow_style=False))
+    back, names = mc.io.load_kalibr(path)
+    assert names == ["cam0", "cam1"] and back.lens == "pinhole"
+    np.testing.assert_array_equal(back.K[1], [[457.587, 0, 379.999], [0, 456.134, 255.238],
+                                              [0, 0, 1]])  # fmt: skip
+    np.testing.assert_array_equal(back.dist[0], [-0.28340811, 0.07395907, 0.00019359,
+                                                 1.76187114e-05, 0.0])  # fmt: skip
+    np.testing.assert_allclose(back.R[1], T[:3, :3], atol=1e-15)
+    np.testing.assert_allclose(back.t[1], T[:3, 3], atol=1e-15)
+    chain["cam1"]["camera_model"] = "omni"
+    path.write_text(yaml.safe_dump(chain))
+    with pytest.raises(ValueError, match="camera_model 'omni'"):
+        mc.io.load_kalibr(path)
+    path.write_text("cameras: [a]\n")
+    with pytest.raises(ValueError, match="not a Kalibr camera chain"):
+        mc.io.load_kalibr(path)
