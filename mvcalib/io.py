@@ -108,6 +108,16 @@ def _array(x, shape):
     return a
 
 
+def _one_axis(cameras: Camera) -> Camera:
+    """The rig in NumPy (no program per index) with one camera axis: a camera gets one; a rig
+    of more axes is refused."""
+    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
+    rig = jax.tree_util.tree_map(lambda a: a[None], rig) if rig.batch_shape == () else rig
+    if len(rig.batch_shape) != 1:
+        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    return rig
+
+
 def _check_cameras(cameras, function: str) -> None:
     """Refuse anything but a `Camera` (a calibration's result is a common slip), saying what to
     pass instead; and a Camera that no reader would load: traced (inside `jax.jit` or `grad`),
@@ -175,10 +185,7 @@ def save_json(path, cameras: Camera, *, names=None, status=None, rms=None, meta=
     ```
     """
     _check_cameras(cameras, "save_json")
-    rig = jax.tree_util.tree_map(np.asarray, cameras)  # (in NumPy: no program per index)
-    rig = jax.tree_util.tree_map(lambda a: a[None], rig) if rig.batch_shape == () else rig
-    if len(rig.batch_shape) != 1:
-        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    rig = _one_axis(cameras)
     n = rig.batch_shape[0]
     names = _names(names, n, "cam_{}")
     entries = []
@@ -753,11 +760,7 @@ def save_colmap(folder, cameras: Camera, image_size, *, names=None) -> pathlib.P
     _check_cameras(cameras, "save_colmap")
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
-    if rig.batch_shape == ():
-        rig = jax.tree_util.tree_map(lambda a: a[None], rig)
-    if len(rig.batch_shape) != 1:
-        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    rig = _one_axis(cameras)
     n = rig.batch_shape[0]
     if np.any(rig.skew != 0):
         raise ValueError("COLMAP's camera models have no skew; refine with skew=False first.")
@@ -922,11 +925,7 @@ def save_kalibr(path, cameras: Camera, image_size, *, topics=None) -> pathlib.Pa
     ```
     """
     _check_cameras(cameras, "save_kalibr")
-    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), cameras)
-    if rig.batch_shape == ():
-        rig = jax.tree_util.tree_map(lambda a: a[None], rig)
-    if len(rig.batch_shape) != 1:
-        raise ValueError(f"save one camera axis; got a rig of shape {rig.batch_shape}.")
+    rig = _one_axis(cameras)
     n = rig.batch_shape[0]
     failed = [i for i in range(n) if not all(np.isfinite(x[i]).all() for x in _fields(rig))]
     if failed:
