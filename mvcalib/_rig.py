@@ -101,6 +101,9 @@ _FRAME_AXIS = dict(target_poses=0, frame_rms=0, residuals=1, observed=1, used=1,
 # minimum where it had 11.4 px and dragged the others to 0.8-5.4 (median 1.2; all OK: below the
 # POOR_FIT bar); started again from its resection, the rig came out at 0.42 px.
 _FAR_WORSE = 3.0
+# Where every camera fits poorly, the rig is solved again without each of this many cameras (the
+# worst fitting first) to find the one that pulled the rest (`_without_one`).
+_SUSPECTS = 12
 # A camera's Jacobian blocks are built this many frames at a time (on one CPU device), so that
 # they stay in cache: the joint solve's step, 16 cameras of a 48-point board, 99 / 145 ms at
 # 1000 / 2000 frames against 161 / 565 ms with all frames at once (linear in the frames again).
@@ -126,8 +129,10 @@ _DEGENERATE_IN_A_RIG = (
 class SolveFailed(ValueError):
     """`calibrate_rig`'s joint solve left every camera POOR_FIT."""
 
-    def __init__(self, rms: float, iterations: int, lens: str = "pinhole", worst: str = ""):
-        self.rms, self.iterations, self.lens = rms, iterations, lens
+    def __init__(
+        self, rms: float, iterations: int, lens: str = "pinhole", worst: str = "", result=None
+    ):
+        self.rms, self.iterations, self.lens, self.result = rms, iterations, lens, result
         wide = "; for wide-angle lenses, `lens='fisheye'`" if lens == "pinhole" else ""
         super().__init__(
             "the rig's joint solve failed: every camera reprojects its points with an RMS above "
@@ -1568,7 +1573,7 @@ def calibrate_rig(
             worst = _worst_pairs(result)
             raise SolveFailed(
                 float(result.rms), int(result.iterations), result.cameras.lens,
-                f"; the worst fits: {worst}" if worst else "",
+                f"; the worst fits: {worst}" if worst else "", result,
             )  # fmt: skip
         if concrete and (status := int(statuses[solve_reference])) != Status.OK:
             why = Status(status).message
@@ -1601,14 +1606,23 @@ def calibrate_rig(
             )
         return result, solve_reference, poor_pairs
 
-    result, solve_reference, poor_pairs = solve(mask, observed)
+    dropped, dropped_rms = np.zeros(C, bool), np.full(C, np.nan)
+    try:
+        result, solve_reference, poor_pairs = solve(mask, observed)
+    except SolveFailed as failed:
+        if C < 3:
+            raise
+        result, solve_reference, poor_pairs, culprit = _without_one(
+            failed, solve, mask, observed, reference, say
+        )
+        dropped[culprit], dropped_rms[culprit] = True, float(failed.result.camera_rms[culprit])
+        result = _marked_poor(result, dropped, dropped_rms)
     # Outside a trace, a POOR_FIT camera, which pulled the others in the solve it took part in,
     # is left out and the rest solved again (by the same compiled program), until none is new;
     # then, with a robust loss, so are the (camera, frame) pairs that fit out of all proportion
     # (`_poor_pairs`): an 8 x 100 `board_rig` whose camera 3 found a symmetric board's corners
     # in reverse order in three frames (the board turned by 180 degrees), `Huber(1.0)`: the two
     # frames other cameras saw are left out, the camera kept.
-    dropped, dropped_rms = np.zeros(C, bool), np.full(C, np.nan)
     gone = np.zeros((C, F), bool)  # the pairs left out
     while concrete:
         poor = (np.asarray(result.status) == Status.POOR_FIT) & ~dropped
@@ -1626,12 +1640,7 @@ def calibrate_rig(
             break
         keep = ~dropped[:, None, None]
         result, solve_reference, poor_pairs = solve(mask & keep & ~gone[..., None], observed & keep)
-        status = np.where(dropped, Status.POOR_FIT, np.asarray(result.status)).astype(np.int32)
-        rms = np.where(dropped, dropped_rms, np.asarray(result.camera_rms))
-        # (from NumPy: no small eager programs)
-        result = eqx.tree_at(
-            lambda r: (r.status, r.camera_rms), result, jax.device_put((status, rms))
-        )
+        result = _marked_poor(result, dropped, dropped_rms)
     # A camera left out, or the one that fits far worse than the rest of the rig, may be a good
     # one that started badly (its own frames leave its focal length loose, its own solve wandered
     # off, and the joint solve ended in another minimum): calibrated against the rest of the
@@ -1660,7 +1669,8 @@ def calibrate_rig(
             )  # fmt: skip
             better = not worse.any() or _rms_of(again, ok) < _rms_of(result, ok)
             if (np.asarray(again.status) == Status.OK)[ok | fitted].all() and better:
-                result = again
+                # (a camera left out and not restarted stays POOR_FIT, its RMS where it took part)
+                result = _marked_poor(again, dropped & ~fitted, dropped_rms)
     say(
         f"RMS {float(result.rms):.3f} px after {int(result.iterations)} steps"
         if concrete
@@ -1669,6 +1679,46 @@ def calibrate_rig(
     if reference == "target":
         result = _to_target_frame(result, origin_frame, concrete)
     return result
+
+
+def _marked_poor(result: RigCalibration, dropped, dropped_rms) -> RigCalibration:
+    """`result` with the cameras `dropped` (left out of its solve) POOR_FIT, with the RMS they
+    had where they took part (`dropped_rms`; NaN where they never did)."""
+    status = np.where(dropped, Status.POOR_FIT, np.asarray(result.status)).astype(np.int32)
+    rms = np.where(dropped, dropped_rms, np.asarray(result.camera_rms))
+    # (from NumPy: no small eager programs)
+    return eqx.tree_at(lambda r: (r.status, r.camera_rms), result, jax.device_put((status, rms)))
+
+
+def _without_one(failed: SolveFailed, solve, mask, observed, reference, say):
+    """Where the joint solve left every camera POOR_FIT, one camera may have pulled the rest
+    (a user's trial: one webcam's video mirrored, every camera POOR_FIT, and the error named
+    the good cameras' worst frames). The rig is solved again without each camera in turn (the
+    `_SUSPECTS` worst fitting), and the camera whose absence leaves the most cameras OK (then
+    the lowest RMS) is the one: `(result, solve_reference, poor_pairs, that camera)`, or
+    `failed` raised again where no such solve calibrates a camera."""
+    rms = np.asarray(failed.result.camera_rms)
+    order = np.argsort(-np.where(np.isfinite(rms), rms, -np.inf), kind="stable")
+    say("every camera fits poorly: solving again without each camera in turn")
+    best, best_key = None, None
+    for c in order[:_SUSPECTS]:
+        if not isinstance(reference, str) and c == int(reference):
+            continue  # (the reference camera stays: choosing another is the user's call)
+        keep = (np.arange(len(rms)) != c)[:, None, None]
+        try:
+            solved = solve(mask & keep, observed & keep)
+        except ValueError:  # (SolveFailed, or the reference camera not calibrated)
+            continue
+        ok = int(np.sum(np.asarray(solved[0].status) == Status.OK))
+        key = (ok, -float(solved[0].rms))
+        if best_key is None or key > best_key:
+            best, best_key = (*solved, int(c)), key
+        if ok == len(rms) - 1:
+            break  # (every other camera calibrated: none does better)
+    if best is None:
+        raise failed
+    say(f"camera {best[3]}: poor fit; the rest of the rig calibrated without it")
+    return best
 
 
 def _rms_of(result: RigCalibration, cameras: np.ndarray) -> float:

@@ -461,6 +461,32 @@ def test_a_camera_that_fits_far_worse_than_the_rest_is_pointed_out():
     assert [m for i, m in enumerate(messages) if i != 2] == ["calibrated"] * 3
 
 
+def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
+    """A user's trial: one webcam's video mirrored (selfie mode). Without a loss the joint solve
+    left every camera POOR_FIT and raised SolveFailed, naming the good cameras' worst frames;
+    the rig is now solved without each camera in turn and the one whose absence calibrates the
+    rest is POOR_FIT. With its corner ids mirrored instead and a Huber loss, it was left out as
+    TOO_FEW_POINTS ("no frame shows it enough of the target", of 28 frames of all 108 corners):
+    POOR_FIT, as left out for its fit."""
+    rig = mc.synthetic.board_rig(jax.random.key(15), n_cameras=5, n_frames=100, noise=0.3)
+    pixels, mask = np.array(rig.pixels), np.array(rig.mask)
+    centres, rotations = _in_reference_frame(rig.cameras)
+    mirrored = pixels.copy()
+    mirrored[2, ..., 0] = 1279.0 - mirrored[2, ..., 0]
+    flipped = np.arange(108).reshape(9, 12)[:, ::-1].ravel()
+    ids = pixels.copy()
+    ids[2], mask_ids = pixels[2][:, flipped], mask.copy()
+    mask_ids[2] = mask[2][:, flipped]
+    for pixels_, mask_, loss in ((mirrored, mask, None), (ids, mask_ids, mc.Huber(2.0))):
+        result = mc.calibrate_rig(rig.target, pixels_, mask_, loss=loss)
+        status = np.asarray(result.status)
+        assert status[2] == mc.Status.POOR_FIT and np.isfinite(result.camera_rms[2])
+        assert (np.delete(status, 2) == mc.Status.OK).all(), status
+        good = np.arange(5) != 2
+        off = np.linalg.norm(np.asarray(result.cameras.center)[good] - centres[good], axis=1)
+        assert off.max() < 0.005, off  # metres; a baseline of ~2.5 m
+
+
 def test_a_failed_reference_names_the_worst_pairs_and_the_robust_loss():
     """A stereo pair, the board turned by 180 degrees in one of camera 1's frames: the error
     blamed the reference camera 0 ("choose another reference"), naming neither the frame nor
