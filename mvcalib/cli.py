@@ -1288,15 +1288,29 @@ def _load_observations(path):
 def _starting_rig(path, names):
     """The rig of `path` (any that `_load_rig` reads) in the order of the observations' camera
     `names`, and the file's name for each: matched by name where the file has every one of them
-    (it may hold more cameras, e.g. a lab's); in order where it has none of them and as many
-    cameras (announced: nothing checks that the order is right); else refused. Some names
+    (it may hold more cameras, e.g. a lab's), or every one with case and punctuation aside
+    (`cam0` = `cam_0`); in order where it has none of them and as many cameras (announced:
+    nothing checks that the order is right); else refused. Some names
     matched and others not was taken in order, silently: focal lengths 20 % off, RMS 6 px, OK."""
     import jax
     import numpy as np
 
     cameras, theirs = _load_rig(path)
+    plain = lambda name: re.sub(r"[^0-9a-z]", "", str(name).lower())  # noqa: E731
+    ours_plain, theirs_plain = [plain(n) for n in names], [plain(n) for n in theirs]
     if len(set(theirs)) == len(theirs) and set(names) <= set(theirs):
         order = [theirs.index(n) for n in names]
+    elif (
+        not set(names) & set(theirs)
+        and len(set(theirs_plain)) == len(theirs)
+        and set(ours_plain) <= set(theirs_plain)
+    ):  # (a user's trial: cam0.. against cam_0.., the observations' first camera cam2, taken in
+        # order: every camera another's intrinsics, all OK at 5 px RMS)
+        order = [theirs_plain.index(n) for n in ours_plain]
+        print(
+            f"note: the cameras of --intrinsics {path} matched by name, case and punctuation "
+            "aside: " + ", ".join(f"{ours} = {theirs[i]}" for ours, i in zip(names, order))
+        )
     elif not set(names) & set(theirs) and len(theirs) == len(names):
         order = list(range(len(names)))
         print(
