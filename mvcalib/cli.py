@@ -829,8 +829,10 @@ def _convert(args) -> int:
     status = np.where(_calibrated(cameras), Status.OK, Status.NON_FINITE).astype(np.int32)
     rms, meta = np.full(len(names), np.nan), {}
     if record is not None:  # a JSON rig's statuses, RMS and meta carry over
-        if record["status"] is not None:
-            status = np.where(status == Status.OK, record["status"], status).astype(np.int32)
+        if record["status"] is not None:  # (a NaN camera keeps its reason, POOR_FIT, ...)
+            stored = np.asarray(record["status"])
+            keep = (status == Status.OK) | (stored != Status.OK)
+            status = np.where(keep, stored, status).astype(np.int32)
         rms = rms if record["rms"] is None else record["rms"]
         meta = record["meta"]
     meta = {**meta, "converted_from": str(args.rig)}

@@ -500,20 +500,22 @@ def test_convert_keeps_a_json_rigs_statuses_rms_and_meta(files, capsys):
     into the YAML as a good one): JSON to JSON keeps them, YAML and COLMAP leave out the
     cameras not OK and name them."""
     rig, _ = mc.io.load_json("rig.json")
-    three = jax.tree_util.tree_map(lambda a: np.concatenate([a, a[:1]]), rig)
-    mc.io.save_json("flagged.json", three, names=["a", "b", "c"], rms=[0.3, 41.0, 0.2],
-                    status=[mc.Status.OK, mc.Status.POOR_FIT, mc.Status.DEGENERATE],
+    four = jax.tree_util.tree_map(lambda a: np.concatenate([a, a[:1], np.nan * a[:1]]), rig)
+    # (a failed camera, NaN, kept its reason, not NON_FINITE: a user's trial)
+    status = [mc.Status.OK, mc.Status.POOR_FIT, mc.Status.DEGENERATE, mc.Status.NOT_CONNECTED]
+    mc.io.save_json("flagged.json", four, names=["a", "b", "c", "d"],
+                    rms=[0.3, 41.0, 0.2, float("nan")], status=status,
                     meta={"target": "box"})  # fmt: skip
     assert cli.main(["convert", "flagged.json", "--out", "back.json", "--quiet"]) == 0
     _, names, record = mc.io.load_json("back.json", record=True)
-    assert names == ["a", "b", "c"] and record["status"].tolist() == [0, 6, 2]
-    assert record["rms"].tolist() == [0.3, 41.0, 0.2]
+    assert names == ["a", "b", "c", "d"] and record["status"].tolist() == [int(s) for s in status]
+    assert record["rms"].tolist()[:3] == [0.3, 41.0, 0.2]
     assert record["meta"] == {"target": "box", "converted_from": "flagged.json"}
     capsys.readouterr()
     assert cli.main(["convert", "flagged.json", "--out", "ok.yml", "--quiet"]) == 0
     out = capsys.readouterr()
     assert "1 camera of flagged.json written" in out.out
-    assert "left out, not calibrated: b (POOR_FIT), c (DEGENERATE)" in out.err
+    assert "left out, not calibrated: b (POOR_FIT), c (DEGENERATE), d (NOT_CONNECTED)" in out.err
     assert mc.io.load_opencv("ok.yml")[1] == ["a"]
 
 
