@@ -247,8 +247,13 @@ class RigCalibration(eqx.Module):
         calibrated = np.flatnonzero(np.asarray(self.status) == Status.OK)
         rms = np.asarray(self.camera_rms)
         held = not {"alpha_v", "u0", "v0"} & set(self.parameter_names)
+        stopped = "" if int(self.result) == 0 else (
+            f"; but the joint solve stopped after {int(self.iterations)} steps without "
+            "converging (`print` the result for why): its parameters are not the least-squares "
+            "answer"
+        )  # fmt: skip
         for c in calibrated:
-            messages[c] += _far_note(lengths[c][used[c]])
+            messages[c] += stopped + _far_note(lengths[c][used[c]])
             others = rms[calibrated[calibrated != c]]
             messages[c] += _misfit_note(float(rms[c]), others, held)
         return messages
@@ -274,9 +279,8 @@ class RigCalibration(eqx.Module):
         robust = bool((used != inliers).any())
         lines = [
             f"rig of {len(status)} cameras, {self.frame_rms.shape[0]} frames: RMS "
-            f"{float(self.rms):.3f} px, {_RESULT_MESSAGES[int(self.result)]} after "
-            f"{int(self.iterations)} steps; {int(self.n_skipped)} (camera, frame) pairs skipped "
-            "(too few points)",
+            f"{float(self.rms):.3f} px, {_outcome(int(self.result), int(self.iterations))}; "
+            f"{int(self.n_skipped)} (camera, frame) pairs skipped (too few points)",
             f"{'camera':<{width}}  frames  points  rms (px)  centre std  status",
         ]
         if robust:
@@ -1214,6 +1218,13 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         result=result,
         poor_pairs=poor_pairs,
     )
+
+
+def _outcome(result: int, steps: int) -> str:
+    """The joint solve's outcome in words: "successful after 7 steps", or why it stopped."""
+    if result == 0:
+        return f"successful after {steps} steps"
+    return f"stopped after {steps} steps, {_RESULT_MESSAGES[result]}"
 
 
 def _far_note(lengths) -> str:

@@ -487,6 +487,19 @@ def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
         assert off.max() < 0.005, off  # metres; a baseline of ~2.5 m
 
 
+def test_a_solve_stopped_by_max_steps_says_so_for_every_camera():
+    """A user's trial: `max_steps=2` left every camera OK and 'calibrated', 93-164 mm off, and
+    the headline read "... else raise `max_steps` after 2 steps"."""
+    rig = mc.synthetic.board_rig(jax.random.key(31), n_cameras=4, n_frames=60, noise=0.3)
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, max_steps=2)
+    assert not bool(result.converged)
+    assert all("stopped after 2 steps without converging" in m for m in result.messages())
+    assert "stopped after 2 steps, not converged within `max_steps`" in str(result)
+    done = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    assert done.messages() == ["calibrated"] * 4
+    assert f"successful after {int(done.iterations)} steps;" in str(done)
+
+
 def test_a_failed_reference_names_the_worst_pairs_and_the_robust_loss():
     """A stereo pair, the board turned by 180 degrees in one of camera 1's frames: the error
     blamed the reference camera 0 ("choose another reference"), naming neither the frame nor
