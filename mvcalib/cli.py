@@ -583,6 +583,8 @@ def _check_usage(parser, args) -> None:
         "aniposelib": "aniposelib's",
         "kalibr": "Kalibr's",
     }.get(getattr(args, "format", None))
+    if not getattr(args, "metres_per_unit", 1.0) > 0:
+        parser.error("--metres-per-unit must be positive (0.001 for a target in millimetres)")
     if getattr(args, "format", None) == "kalibr" and "k3" in (getattr(args, "distortion", 0) or ()):
         if not getattr(args, "fisheye", False):  # (refused before the work, not after it)
             parser.error("--format kalibr: Kalibr's radtan distortion has k1 k2 p1 p2, not k3")
@@ -649,6 +651,14 @@ def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
         f"folder --out; needs {colmap_needs}), aniposelib (calibration.toml; needs it too) or "
         "kalibr (Kalibr's camchain.yaml; needs it too); default from --out: .json, .yml or "
         ".yaml (opencv), .toml",
+    )
+    parser.add_argument(
+        "--metres-per-unit",
+        type=float,
+        default=1.0,
+        metavar="M",
+        help="--format kalibr: metres per unit of the rig, Kalibr's translations being metres "
+        "(0.001 for a target in millimetres; default 1)",
     )
 
 
@@ -996,7 +1006,9 @@ def _write_rig(args, cameras, names, status, rms, meta) -> int:
         io.save_aniposelib(out, cameras, args.image_size, names=names)
     elif args.format == "kalibr":
         topics = [f"/{name}/image_raw" for name in _unique(map(_opencv_name, names))]
-        io.save_kalibr(out, cameras, args.image_size, topics=topics)
+        io.save_kalibr(
+            out, cameras, args.image_size, topics=topics, metres_per_unit=args.metres_per_unit
+        )
     else:
         io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
     return len(keep)

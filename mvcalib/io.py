@@ -21,6 +21,7 @@ import stat
 import tempfile
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -893,7 +894,9 @@ def _kalibr_list(values) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
-def save_kalibr(path, cameras: Camera, image_size, *, topics=None) -> pathlib.Path:
+def save_kalibr(
+    path, cameras: Camera, image_size, *, topics=None, metres_per_unit: float = 1.0
+) -> pathlib.Path:
     """Save a rig as Kalibr's camera chain (`camchain.yaml`), the file robotics tools read for a
     multi-camera rig (Kalibr, OpenVINS, VINS-Fusion, ORB-SLAM3's converters), atomically.
 
@@ -909,13 +912,18 @@ def save_kalibr(path, cameras: Camera, image_size, *, topics=None) -> pathlib.Pa
     there; keep the calibrated ones (`cameras[ok]`). Numbers are Python's shortest exact
     representation: reading back gives the same doubles.
 
+    Kalibr's translations are metres; a rig is in its target's units: give `metres_per_unit`
+    (0.001 for a target in millimetres). A rig whose cameras stand more than 100 m apart once so
+    scaled is written with a warning (a target in millimetres, unscaled, puts a 2 m rig 2 km
+    wide).
+
     **Example:**
 
     ```python
     >>> import jax, tempfile, pathlib, numpy as np, mvcalib as mc
-    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras
+    >>> rig = mc.synthetic.random_rig(jax.random.key(0), 3).cameras  # (millimetres)
     >>> path = mc.io.save_kalibr(pathlib.Path(tempfile.mkdtemp()) / "camchain.yaml", rig,
-    ...                          (1000, 1100))
+    ...                          (1000, 1100), metres_per_unit=0.001)
     >>> print(path.read_text().splitlines()[1])
       camera_model: pinhole
     >>> back, names = mc.io.load_kalibr(path)  # (reading needs PyYAML)
@@ -939,6 +947,17 @@ def save_kalibr(path, cameras: Camera, image_size, *, topics=None) -> pathlib.Pa
         raise ValueError(
             "Kalibr's radtan distortion has k1 k2 p1 p2, not k3: calibrate with "
             "distortion=('k1', 'k2', 'p1', 'p2') (refine's default)."
+        )
+    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise ValueError(f"`metres_per_unit` is positive; got {metres_per_unit!r}.")
+    rig = eqx.tree_at(lambda c: c.t, rig, rig.t * float(metres_per_unit))
+    centres = np.einsum("cji,cj->ci", rig.R, -rig.t)
+    span = float(np.max(np.linalg.norm(centres - centres[0], axis=-1)))
+    if span > 100.0:
+        warnings.warn(
+            f"save_kalibr: the cameras stand up to {span:.4g} m apart, read as Kalibr's metres: "
+            "is the rig in millimetres? (metres_per_unit=0.001)",
+            stacklevel=2,
         )
     width, height = (int(v) for v in image_size)
     topics = [f"/cam{i}/image_raw" for i in range(n)] if topics is None else list(topics)

@@ -472,7 +472,8 @@ def test_convert_writes_kalibr_s_camchain_and_reads_it_back(files, capsys):
     the rig in camera a's frame, projecting as before; refused up front where it cannot hold
     the calibration asked for (k3), before any work."""
     rig, _ = mc.io.load_json("rig.json")
-    args = ["convert", "rig.json", "--format", "kalibr", "--out", "camchain.yaml", "--quiet"]
+    args = ["convert", "rig.json", "--format", "kalibr", "--out", "camchain.yaml", "--quiet",
+            "--metres-per-unit", "0.001"]  # fmt: skip
     with pytest.raises(SystemExit) as exit:
         cli.main(args)
     assert exit.value.code == 2 and "--format kalibr needs --image-size" in capsys.readouterr().err
@@ -481,9 +482,9 @@ def test_convert_writes_kalibr_s_camchain_and_reads_it_back(files, capsys):
     assert "rostopic: /b/image_raw" in pathlib.Path("camchain.yaml").read_text()
     back, names = cli._load_rig("camchain.yaml")
     world = np.asarray(mc.targets.box_corner().points)
-    in_a = world @ np.asarray(rig.R[0]).T + np.asarray(rig.t[0])
+    in_a = world @ np.asarray(rig.R[0]).T + np.asarray(rig.t[0])  # (millimetres: metres back)
     assert names == ["cam0", "cam1"]
-    np.testing.assert_allclose(back.project(in_a), rig.project(world), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(back.project(in_a / 1000), rig.project(world), rtol=0, atol=1e-9)
     for wrong, message in (
         (["convert", "rig.json", "--format", "kalibr", "--out", "r.json"], "a .yaml or .yml"),
         (["calibrate", "corr.csv", "--distortion", "k1,k2,k3", "--format", "kalibr", "--out",

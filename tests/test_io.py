@@ -305,7 +305,8 @@ def test_writers_refuse_a_camera_no_reader_would_load(tmp_path, save):
     gradient = eqx.filter_grad(lambda c: c.project(rig.world).sum())(cameras)
     path = tmp_path / ("rig.toml" if save == "save_aniposelib" else "rig")
     sized = save in ("save_colmap", "save_aniposelib", "save_kalibr")
-    write = lambda c: getattr(mc.io, save)(path, c, *([(1000, 1100)] if sized else []))  # noqa: E731
+    scaled = {"metres_per_unit": 1e-3} if save == "save_kalibr" else {}  # (a rig in millimetres)
+    write = lambda c: getattr(mc.io, save)(path, c, *([(1000, 1100)] if sized else []), **scaled)  # noqa: E731
     with pytest.raises(ValueError, match=rf"{save}: camera 0: R is not a rotation"):
         write(gradient)
     with pytest.raises(TypeError, match="concrete cameras, outside jax.jit"):
@@ -315,8 +316,9 @@ def test_writers_refuse_a_camera_no_reader_would_load(tmp_path, save):
 
 # ---------------------------------------------------------------------------- Kalibr camchain
 def _lensed_rig(lens):
-    """A rig of 4 cameras with distortion and no skew, as Kalibr holds them."""
-    rig = mc.synthetic.random_rig(jax.random.key(3), n_cameras=4)
+    """A rig of 4 cameras with distortion and no skew, as Kalibr holds them, in metres."""
+    rig = mc.synthetic.random_rig(jax.random.key(3), n_cameras=4)  # (millimetres)
+    rig = eqx.tree_at(lambda r: (r.world, r.cameras.t), rig, replace_fn=lambda x: x / 1000.0)
     if lens == "pinhole":
         dist = np.array([[-0.21, 0.05, 1e-3, -2e-3, 0.0]] * 4)
     else:
@@ -379,6 +381,15 @@ def test_kalibr_refuses_what_its_file_cannot_hold(tmp_path):
     with pytest.raises(ValueError, match="3 topics for 4 cameras"):
         mc.io.save_kalibr(path, cameras, (1000, 1100), topics=["/a", "/b", "/c"])
     assert not path.exists()
+    # Kalibr's metres: a rig in millimetres (a user's trial: "2.3 km" baselines) warns, and
+    # `metres_per_unit` scales it
+    in_mm = eqx.tree_at(lambda c: c.t, cameras, replace_fn=lambda t: 1000.0 * t)
+    with pytest.warns(UserWarning, match="is the rig in millimetres"):
+        mc.io.save_kalibr(path, in_mm, (1000, 1100))
+    mc.io.save_kalibr(path, in_mm, (1000, 1100), metres_per_unit=0.001)
+    back, _ = mc.io.load_kalibr(path)
+    np.testing.assert_allclose(np.linalg.norm(back.center[1]),
+                               np.linalg.norm(cameras.center[1] - cameras.center[0]))  # fmt: skip
 
 
 def test_load_kalibr_reads_kalibr_s_block_style_and_imu_chains(tmp_path):
