@@ -1715,20 +1715,23 @@ def load_observations(path) -> Observations:
 # ---------------------------------------------------------------------------- caliscope
 _CALISCOPE = ("sync_index", "cam_id", "keypoint_id", "img_loc_x", "img_loc_y", "obj_loc_x",
               "obj_loc_y")  # fmt: skip
+# The names caliscope's recorder gives two of them (its `XYSchema`), read as the same columns.
+_CALISCOPE_ALIASES = {"cam_id": "port", "keypoint_id": "point_id"}
 
 
 def load_caliscope(xy_csv) -> Observations:
     """Read caliscope's `xy.csv`: a rig's detections of a ChArUco board over frames.
 
     Each row is one board corner (`keypoint_id`) seen by one camera (`cam_id`) in one
-    synchronised frame (`sync_index`): its pixel (`img_loc_x`, `img_loc_y`) and its place on
-    the board (`obj_loc_x`, `obj_loc_y`, and `obj_loc_z` if there is one; else the board is
-    the plane z = 0). Other columns (`frame_index`, `frame_time`, `object_id`) are not used,
-    but a file with more than one `object_id` is refused. The cameras are named `cam_<id>` in
+    synchronised frame (`sync_index`): its pixel (`img_loc_x`, `img_loc_y`) and its place on the
+    board (`obj_loc_x`, `obj_loc_y`, and `obj_loc_z` if there is one; else the board is the
+    plane z = 0). Other columns (`frame_index`, `frame_time`, `object_id`) are not used, but a
+    file with more than one `object_id` is refused. `port` and `point_id`, the names caliscope's
+    recorder writes, are read as `cam_id` and `keypoint_id`. The cameras are named `cam_<id>` in
     ascending id order, as `load_caliscope_cameras` names them; frames are the `sync_index`es
     and points the `keypoint_id`s. Raises `ValueError` naming the file and line for a missing
-    column, a number or id that is not one, NaN or inf, a corner whose board coordinates are
-    not exactly those of an earlier row, or a camera seeing a corner twice in one frame.
+    column, a number or id that is not one, NaN or inf, a corner whose board coordinates are not
+    exactly those of an earlier row, or a camera seeing a corner twice in one frame.
 
     **Example:**
 
@@ -1750,7 +1753,15 @@ def load_caliscope(xy_csv) -> Observations:
     ```
     """
     path = pathlib.Path(xy_csv)
-    column, table = _csv_table(path, _CALISCOPE, strict=False)
+    try:
+        header = {h.strip() for h in path.read_text(encoding=ENCODING).lstrip().split("\n")[0]
+                  .split(",")}  # fmt: skip
+    except (OSError, UnicodeDecodeError):
+        header = set()  # (`_csv_table` says why)
+    aliased = {ours: theirs for ours, theirs in _CALISCOPE_ALIASES.items()
+               if ours not in header and theirs in header}  # fmt: skip
+    column, table = _csv_table(path, tuple(aliased.get(h, h) for h in _CALISCOPE), strict=False)
+    column.update({ours: column[theirs] for ours, theirs in aliased.items()})
     has_z, objects = "obj_loc_z" in column, {}
     target, seen, cameras, frames = {}, {}, set(), set()
     for line, row in table:

@@ -63,6 +63,18 @@ def test_caliscope_real_data_has_1725_observations_of_12_corners_by_4_cameras_in
     assert names == o.cameras
 
 
+def test_caliscope_xy_with_its_recorder_s_column_names_reads_the_same(tmp_path):
+    """caliscope's recorder (its `XYSchema`) names two columns `port` and `point_id`, the
+    bundled recording `cam_id` and `keypoint_id`: a user's file with the former was refused
+    with "no 'cam_id' column"."""
+    root = data_dir("caliscope_4cam")
+    text = (root / "xy.csv").read_text()
+    header, body = text.split("\n", 1)
+    renamed = header.replace("cam_id", "port").replace("keypoint_id", "point_id")
+    (tmp_path / "xy.csv").write_text(renamed + "\n" + body)
+    _same(mc.io.load_caliscope(tmp_path / "xy.csv"), mc.io.load_caliscope(root / "xy.csv"))
+
+
 def test_caliscope_real_observations_survive_the_observations_file(tmp_path):
     o = mc.io.load_caliscope(data_dir("caliscope_4cam") / "xy.csv")
     path = mc.io.save_observations(tmp_path / "obs.csv", o)
