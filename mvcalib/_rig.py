@@ -1395,7 +1395,11 @@ def calibrate_rig(
     - `reference`: the camera whose frame is the world's (default 0), or `"target"`: the
       target's frame in `origin_frame` (an index along the frame axis of `pixels`, not a frame
       id from a file; default: the frame seen by the most cameras), so that the board sets the
-      world's origin and floor.
+      world's origin and floor. The world's axes are then the target's: x and y along the
+      board, z its normal away from the cameras that see it (they see its -z side, as OpenCV's
+      chessboard frame): a board lying on the floor puts z down and the cameras below zero. For
+      z up, turn the world by 180 degrees about x: `mc.to_global(result.cameras,
+      mc.RigidTransform(np.diag([1.0, -1.0, -1.0]), np.zeros(3)))`.
     - `loss`: `mc.Huber(scale)` or `mc.Cauchy(scale)` (pixels) for wrong detections.
     - `rcond`: the closed form's threshold for a degenerate homography or DLT (default
       sqrt(machine epsilon)); `max_steps` of Levenberg–Marquardt.

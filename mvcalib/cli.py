@@ -270,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         metavar="FRAME",
         help="with --reference target: the frame (its id in the observations file) whose "
-        "target pose is the world, e.g. the board lying on the floor",
+        "target pose is the world, e.g. the board lying on the floor (z along the board's "
+        "normal, away from the cameras that see it: down, for a board on the floor)",
     )
     robust = rig.add_mutually_exclusive_group()
     robust.add_argument(
