@@ -252,10 +252,13 @@ class RigCalibration(eqx.Module):
             "converging (`print` the result for why): its parameters are not the least-squares "
             "answer"
         )  # fmt: skip
+        cameras = jax.tree_util.tree_map(np.asarray, self.cameras)
         for c in calibrated:
             messages[c] += stopped + _far_note(lengths[c][used[c]])
             others = rms[calibrated[calibrated != c]]
             messages[c] += _misfit_note(float(rms[c]), others, held)
+            if cameras.lens == "pinhole":
+                messages[c] += _fold_note(cameras[c])
         return messages
 
     def __str__(self) -> str:
@@ -1217,6 +1220,38 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         iterations=steps,
         result=result,
         poor_pairs=poor_pairs,
+    )
+
+
+def _fold_radius(dist) -> float:
+    """The normalised radius at which a pinhole lens's radial distortion `r (1 + k1 r^2 + k2 r^4
+    + k3 r^6)` stops increasing (the first positive root of its slope, a cubic in r^2), or inf:
+    beyond it a distorted radius has a second ray, or none."""
+    k1, k2, _, _, k3 = (float(k) for k in dist)
+    roots = np.roots([7 * k3, 5 * k2, 3 * k1, 1.0])  # (leading zeros are dropped)
+    s = [float(z.real) for z in np.atleast_1d(roots) if abs(z.imag) < 1e-12 and z.real > 0]
+    return float(np.sqrt(min(s))) if s else np.inf
+
+
+def _fold_note(camera: Camera) -> str:
+    """A note where a pinhole camera's radial distortion folds back inside its image, taking
+    the principal point as the image's centre (its corners `hypot(u0 + 0.5, v0 + 0.5)` px
+    away). A user's trial, caliscope's recording with free intrinsics: camera 2's k1 0.62, k2
+    -6.3 (the board never beyond 169 px of its principal point) folded at 249 px of a 1280 x 720
+    image: rays beyond it 27-67 degrees off, and nothing said."""
+    r = _fold_radius(camera.dist)
+    if not np.isfinite(r):
+        return ""
+    k1, k2, _, _, k3 = (float(k) for k in camera.dist)
+    fold = float(camera.alpha_v) * r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+    corner = float(np.hypot(camera.u0 + 0.5, camera.v0 + 0.5))
+    if not fold < corner:
+        return ""
+    return (
+        f"; but its lens distortion folds back {fold:.0f} px from the principal point, inside "
+        f"the image (its corners ~{corner:.0f} px away): beyond the fold its rays are wrong. "
+        "Record the target out to the image's edges, or fit fewer terms (distortion=('k1',); "
+        "--distortion k1)"
     )
 
 

@@ -762,6 +762,28 @@ def test_caliscope_recording_calibrated_from_its_detections_alone(reference):
     result = mc.calibrate_rig(o.target, o.pixels, o.mask, reference=reference)
     assert bool(result.ok.all()) and bool(result.converged), int(result.iterations)
     assert float(result.rms_observed) < 0.94
+    # A user's trial: camera 2's board never beyond 169 px of its principal point, its k1 0.62
+    # and k2 -6.3 fold back ~250 px from it, in a 1280 x 720 image, with no word; camera 3's
+    # ~550 px (caliscope's own intrinsics fold nowhere in the image: no note, below). From
+    # camera 1 the solve ends in another minimum (RMS 0.8752 against 0.8799 px), camera 2's k2
+    # -0.2 there: no fold.
+    folds = ["lens distortion folds back" in m for m in result.messages()]
+    k2 = float(result.cameras.dist[2, 1])
+    assert folds == [False, False, k2 < -1, True], (k2, result.messages())
+
+
+def test_a_lens_whose_distortion_folds_inside_its_image_is_pointed_out():
+    """The note's counterpart: caliscope's own cameras, calibrated from dedicated videos, fold
+    nowhere in their images, and held so they get no note; the fold radius is that of the
+    radial slope's first root (k1 -0.25, k2 -0.05: slope 1 - 0.75 r^2 - 0.25 r^4 = 0 at r = 1)."""
+    from mvcalib._rig import _fold_radius
+
+    o, cameras = _caliscope()
+    fix = ("intrinsics", "distortion")
+    result = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=cameras, fix=fix, reference=1)
+    assert not any("folds back" in m for m in result.messages()), result.messages()
+    assert _fold_radius([-0.25, -0.05, 0, 0, 0]) == pytest.approx(1.0, rel=1e-12)
+    assert _fold_radius([-0.1, 0.01, 0, 0, 0]) == np.inf  # (slope 1 - 0.3 s + 0.05 s^2 > 0)
 
 
 def test_reference_target_puts_the_world_on_the_board():
