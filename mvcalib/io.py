@@ -944,9 +944,12 @@ def save_kalibr(
     if np.any(rig.skew != 0):
         raise ValueError("Kalibr's camera models have no skew; refine with skew=False first.")
     if rig.lens == "pinhole" and np.any(rig.dist[:, 4] != 0):
+        k3 = ", ".join(f"{i}: {rig.dist[i, 4]:.3g}" for i in np.flatnonzero(rig.dist[:, 4]))
         raise ValueError(
-            "Kalibr's radtan distortion has k1 k2 p1 p2, not k3: calibrate with "
-            "distortion=('k1', 'k2', 'p1', 'p2') (refine's default)."
+            f"Kalibr's radtan distortion has k1 k2 p1 p2, not k3 (camera {k3}). Calibrate with "
+            "distortion=('k1', 'k2', 'p1', 'p2') (refine's default) from a start without k3 (a "
+            "starting rig's k3, e.g. caliscope's or OpenCV's, is kept where not estimated); or "
+            "save as OpenCV's YAML or COLMAP's FULL_OPENCV, which hold k3."
         )
     if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"`metres_per_unit` is positive; got {metres_per_unit!r}.")
