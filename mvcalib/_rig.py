@@ -1541,6 +1541,7 @@ def calibrate_rig(
         _validate.in_image(pixels, mask, image_size)
     if cameras is not None and cameras.lens != lens:
         raise ValueError(f"`lens={lens!r}` but the starting `cameras` are {cameras.lens} cameras.")
+    given_cameras = cameras
     if cameras is None and lens == "fisheye":
         if not (planar and concrete) or image_size is None:
             raise ValueError(
@@ -1550,6 +1551,9 @@ def calibrate_rig(
             )
         say("each fisheye camera's intrinsics from its own frames (calibrate_planar)")
         cameras = _fisheye_start(target, pixels, mask, image_size, loss)
+        # (a camera with frames but no start: its frames do not determine its intrinsics)
+        unstarted = ~np.isfinite(np.asarray(cameras.alpha_u))
+        unstarted &= (np.asarray(mask).sum(-1) >= MIN_PLANE_POINTS).any(-1)
     names = parameter_names(lens)
     free = _free_parameters(distortion, fix, skew, lens)
     fixed = set(names) - {names[i] for i in free.reported}  # (a tied alpha_u is not held)
@@ -1726,6 +1730,12 @@ def calibrate_rig(
         if concrete
         else "traced"
     )
+    if concrete and lens == "fisheye" and given_cameras is None:
+        # A user's trial: a fisheye camera with one frame of ~100 corners was TOO_FEW_POINTS ("no
+        # frame shows it enough of the target"); it lacks frames to start its intrinsics from.
+        status = np.asarray(result.status)
+        status = np.where(unstarted & (status == Status.TOO_FEW_POINTS), Status.DEGENERATE, status)
+        result = eqx.tree_at(lambda r: r.status, result, jax.device_put(status.astype(np.int32)))
     if reference == "target":
         result = _to_target_frame(result, origin_frame, concrete)
     return result

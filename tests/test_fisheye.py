@@ -536,6 +536,13 @@ def test_refine_rig_and_calibrate_rig_take_fisheye_rigs(tmp_path, monkeypatch):
     assert np.abs(focal).max() < 1.0  # px
     with pytest.raises(ValueError, match="image_size"):
         mc.calibrate_rig(board, pixels, lens="fisheye")
+    # a camera with one frame (of many corners) has none to start its intrinsics from: DEGENERATE
+    # (a user's trial: TOO_FEW_POINTS, "no frame shows it enough of the target"), the rest OK
+    one = pixels.copy()
+    seen = np.flatnonzero(np.isfinite(one[5, ..., 0]).sum(-1) >= 4)
+    one[5, seen[1:]] = np.nan
+    single = mc.calibrate_rig(board, one, lens="fisheye", image_size=IMAGE)
+    assert int(single.status[5]) == mc.Status.DEGENERATE and bool(single.ok[:5].all())
     # the command line: the same rig, written as a fisheye rig
     monkeypatch.setenv("MVCALIB_COMPILATION_CACHE", "0")  # leave this process's JAX alone
     names = [f"cam{c}" for c in range(6)]
