@@ -1346,9 +1346,9 @@ def _poor_pairs(square, used, pixels, ok, max_relative_rms, loss):
 _FISHEYE_START_FRAMES = 20
 
 
-def _fisheye_start(target, pixels, mask, image_size, loss) -> Camera:
-    """Each camera of a fisheye rig from its own frames of a planar target: intrinsics and
-    distortion by `calibrate_planar(lens="fisheye", loss=loss)` of up to
+def _own_start(target, pixels, mask, image_size, loss, lens="fisheye", which=None) -> Camera:
+    """Each camera (of `which`, default all) from its own frames of a planar target: intrinsics
+    and distortion by `calibrate_planar(lens=lens, loss=loss)` of up to
     `_FISHEYE_START_FRAMES` of them, evenly spread (so that every camera with as many runs the
     same compiled program; NaN with fewer than 2 frames, or fewer than 2 of them OK); the poses
     are the closed form's business, so these are the identity. (Until 2026-12-05 without the
@@ -1357,8 +1357,8 @@ def _fisheye_start(target, pixels, mask, image_size, loss) -> Camera:
     from ._planar import calibrate_planar
 
     C = pixels.shape[0]
-    K, dist = np.full((C, 3, 3), np.nan), np.full((C, 4), np.nan)
-    for c in range(C):
+    K, dist = np.full((C, 3, 3), np.nan), np.full((C, len(LENSES[lens])), np.nan)
+    for c in range(C) if which is None else np.flatnonzero(which):
         frames = np.flatnonzero(mask[c].sum(-1) >= MIN_PLANE_POINTS)
         if len(frames) < 2:
             continue
@@ -1366,12 +1366,12 @@ def _fisheye_start(target, pixels, mask, image_size, loss) -> Camera:
         frames = frames[np.unique(spread.round().astype(int))]
         px = np.where(mask[c, frames, :, None], pixels[c, frames], np.nan)
         own = calibrate_planar(
-            target, px, mask[c, frames], lens="fisheye", image_size=image_size, loss=loss
+            target, px, mask[c, frames], lens=lens, image_size=image_size, loss=loss
         )
         if np.sum(np.asarray(own.ok)) >= 2 and np.all(np.isfinite(np.asarray(own.K))):
             K[c], dist[c] = np.asarray(own.K), np.asarray(own.dist)
     eye, zero = np.broadcast_to(np.eye(3), (C, 3, 3)), np.zeros((C, 3))
-    return Camera.from_matrices(K, eye, zero, dist, lens="fisheye")
+    return Camera.from_matrices(K, eye, zero, dist, lens=lens)
 
 
 # ------------------------------------------------------------------------------ public
@@ -1550,7 +1550,7 @@ def calibrate_rig(
                 "`image_size=(width, height)`, or fisheye `cameras=`."
             )
         say("each fisheye camera's intrinsics from its own frames (calibrate_planar)")
-        cameras = _fisheye_start(target, pixels, mask, image_size, loss)
+        cameras = _own_start(target, pixels, mask, image_size, loss)
         # (a camera with frames but no start: its frames do not determine its intrinsics)
         unstarted = ~np.isfinite(np.asarray(cameras.alpha_u))
         unstarted &= (np.asarray(mask).sum(-1) >= MIN_PLANE_POINTS).any(-1)
@@ -1560,6 +1560,16 @@ def calibrate_rig(
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:
         raise ValueError("holding the intrinsics fixed needs the starting rig: pass `cameras=`.")
+    if given_cameras is not None and concrete and planar and not fixes_intrinsics:
+        # A starting camera with no calibration (NaN: a user's earlier run where it failed)
+        # starts from its own frames, as without `cameras=` (it was TOO_FEW_POINTS, "no frame
+        # shows it enough of the target", of 28 frames of 108 corners).
+        lost = ~np.all(np.isfinite(np.asarray(cameras.K)), axis=(-2, -1))
+        if lost.any() and cameras.batch_shape == (C,):
+            say(f"camera {', '.join(map(str, np.flatnonzero(lost)))}: no starting values (NaN); "
+                "started from its own frames")  # fmt: skip
+            own = _own_start(target, pixels, mask, image_size, loss, cameras.lens, lost)
+            cameras = where_cameras(jnp.asarray(lost), own, cameras)
     if cameras is not None:
         if cameras.batch_shape != (C,):
             raise ValueError(

@@ -500,6 +500,21 @@ def test_a_solve_stopped_by_max_steps_says_so_for_every_camera():
     assert f"successful after {int(done.iterations)} steps;" in str(done)
 
 
+def test_a_starting_camera_without_values_starts_from_its_own_frames():
+    """A user's trial: re-run from an earlier rig in which camera 2 had failed (NaN), its
+    detections since mended: camera 2 was TOO_FEW_POINTS ("no frame shows it enough of the
+    target") though it saw the board in 28 frames. It starts from its own frames now, as
+    without `cameras=`; held intrinsics still need values."""
+    rig = mc.synthetic.board_rig(jax.random.key(4), n_cameras=4, n_frames=60, noise=0.3)
+    truth = jax.tree_util.tree_map(np.asarray, rig.cameras)
+    start = eqx.tree_at(lambda c: c.alpha_u, truth, truth.alpha_u.copy())
+    start.alpha_u[2] = np.nan
+    result = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=start)
+    assert bool(result.ok.all()), result.messages()
+    focal = float(result.cameras.alpha_u[2])
+    assert abs(focal / float(truth.alpha_u[2]) - 1) < 0.005, focal
+
+
 def test_a_failed_reference_names_the_worst_pairs_and_the_robust_loss():
     """A stereo pair, the board turned by 180 degrees in one of camera 1's frames: the error
     blamed the reference camera 0 ("choose another reference"), naming neither the frame nor
