@@ -33,11 +33,9 @@ runs several one after the other, on other threads at the same time (`ahead`).
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import contextvars
 import functools
 import math
-import threading
 import warnings
 
 import equinox as eqx
@@ -237,8 +235,7 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
         self._fun, self._jit, self._kwargs = fun, jit, kwargs
         self.traced = jit(fun, **kwargs)
         self._compiling: list[concurrent.futures.Future] = []
-        self._seen: set = set()  # the signatures of the calls from Python so far, and `ahead`'s
-        self._called: set = set()  # those of the calls from Python
+        self._seen: set = set()  # the signatures of the calls from Python so far
         functools.update_wrapper(self, fun)
 
     @functools.cached_property
@@ -259,14 +256,12 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
                 if signature in self._seen and _holds_programs(build):
                     raise _Lowered(None)  # compiled already
                 lowered = build.lower(*args, **kwargs)
-                self._compiling.append(_compiler().submit(_in_turn, lowered.compile))
+                self._compiling.append(_compiler().submit(lowered.compile))
                 self._seen.add(signature)
                 raise _Lowered(_stand_in(lowered))
             self._wait()
-            with contextlib.nullcontext() if signature in self._called else _xla_turn():
-                out = build(*args, **kwargs)
+            out = build(*args, **kwargs)
         self._seen.add(signature)
-        self._called.add(signature)
         return out
 
     def _wait(self):
@@ -280,7 +275,6 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
         """Forget every build's compiled programs (`jax.jit`'s `clear_cache`)."""
         self._wait()
         self._seen.clear()
-        self._called.clear()
         for build in ("traced", "optimised", "quick"):
             if build in self.__dict__:
                 getattr(self.__dict__[build], "clear_cache", lambda: None)()
@@ -359,25 +353,6 @@ def _stand_in(lowered):
 @functools.cache
 def _compiler() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="mvcalib-compile")
-
-
-# With JAX's persistent compilation cache on, XLA has crashed (a segfault, once in some twenty
-# runs of the test suite) loading a program from the cache on one thread while it compiled
-# another on a second. There, mvcalib's programs are compiled or loaded one at a time: a call
-# that may compile (the first of its kind) waits for the compiles `ahead` started, and they for
-# each other; they still overlap with Python (tracing, lowering, the checks in NumPy).
-_XLA = threading.Lock()
-
-
-def _xla_turn():
-    """`_XLA` where JAX's persistent compilation cache is on, else nothing to wait for."""
-    cached = jax.config.jax_enable_compilation_cache and jax.config.jax_compilation_cache_dir
-    return _XLA if cached else contextlib.nullcontext()
-
-
-def _in_turn(compile):
-    with _xla_turn():
-        return compile()
 
 
 def ahead(fun, /, *args, **kwargs):

@@ -227,41 +227,6 @@ def test_ahead_is_only_a_hint():
     assert calls == [2] and not scaled._compiling
 
 
-def test_with_the_persistent_cache_programs_compile_one_at_a_time():
-    """With JAX's persistent compilation cache on (as in this suite), XLA once crashed loading a
-    program from it on one thread while compiling another on a second: a compile `ahead` starts
-    waits for the one running, and so does a call's first compile, however it was started."""
-    import threading
-
-    assert jax.config.jax_compilation_cache_dir  # (conftest.py)
-
-    @_buckets.jit
-    def first(x):
-        return jnp.sin(x) + 1
-
-    @_buckets.jit
-    def second(x):
-        return jnp.cos(x) * 2
-
-    x = np.arange(3.0)
-    with _buckets._XLA:  # as while another program compiles
-        assert _buckets.ahead(first, x) is not None  # lowered; its compile waits
-        call = threading.Thread(target=second, args=(x,))
-        call.start()
-        call.join(1.0)
-        assert call.is_alive() and not first._compiling[0].done()
-    call.join(60)
-    assert not call.is_alive()
-    np.testing.assert_allclose(first(x), np.sin(x) + 1)
-    with _buckets._XLA:  # compiled already: calls wait for no one
-        np.testing.assert_allclose(second(x), np.cos(x) * 2)
-    jax.config.update("jax_enable_compilation_cache", False)
-    try:  # no cache: no turns
-        assert _buckets._xla_turn() is not _buckets._XLA
-    finally:
-        jax.config.update("jax_enable_compilation_cache", True)
-
-
 def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     """`calibrate_rig` pads a concrete rig's frames up to a bucket (32, 48, 64, 96, ...) with
     frames nobody saw: recordings of 40 and 45 frames compile each of its programs once. The
