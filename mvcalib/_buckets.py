@@ -36,7 +36,6 @@ import concurrent.futures
 import contextvars
 import functools
 import math
-import os
 import warnings
 
 import equinox as eqx
@@ -356,16 +355,6 @@ def _compiler() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="mvcalib-compile")
 
 
-def compiles_ahead() -> bool:
-    """Whether `ahead` compiles on other threads: only with `MVCALIB_COMPILE_AHEAD=1`. Off by
-    default since 2026-12-06: XLA (jax 0.10.2, CPU) crashed with a segfault in three of the
-    test suite's last five runs on this project's 2-core machine, each time with programs
-    compiled, serialised or loaded while `ahead`'s threads were at work (twice two compiles at
-    once, in `calibrate_planar`'s robust solve); a crash ends the user's process. The first
-    calls it made faster (docs/performance.md) are 10-25 % slower without it."""
-    return os.environ.get("MVCALIB_COMPILE_AHEAD", "0") == "1"
-
-
 def ahead(fun, /, *args, **kwargs):
     """Start compiling the program that `fun(*args, **kwargs)` would call first (a `jit`'s), and
     return as soon as it is lowered: `fun` runs up to that call (its checks and padding, in
@@ -377,8 +366,8 @@ def ahead(fun, /, *args, **kwargs):
     zero), with which the `ahead` of a program that takes them can follow; `None` where nothing
     was started. Only a hint: inside a trace, where the program is compiled already, or if `fun`
     fails before its first program, nothing is started (a real call would raise the same
-    error). Off unless `MVCALIB_COMPILE_AHEAD=1` (`compiles_ahead`)."""
-    if not _top_level() or not compiles_ahead():
+    error)."""
+    if not _top_level():
         return None
     token = _AHEAD.set(True)
     try:

@@ -133,12 +133,10 @@ def _compiled_on(caplog, name):
     [(6, 25, np.asarray), (64, 64, np.asarray), (64, 64, jnp.asarray)],
     ids=["padded", "bucket-shaped-numpy", "bucket-shaped-jax"],
 )
-def test_refinement_compiles_once_on_a_second_thread(caplog, cameras, points, to, monkeypatch):
+def test_refinement_compiles_once_on_a_second_thread(caplog, cameras, points, to):
     """`calibrate(..., refine=True)` has XLA compile the refinement while it compiles and runs
-    the DLT (with `MVCALIB_COMPILE_AHEAD=1`): once, on another thread, and the answer is the
-    traced call's. So does a rig already of its bucket's shape, which is not padded (64 cameras
-    of 64 points)."""
-    monkeypatch.setenv("MVCALIB_COMPILE_AHEAD", "1")
+    the DLT: once, on another thread, and the answer is the traced call's. So does a rig already
+    of its bucket's shape, which is not padded (64 cameras of 64 points)."""
     world, pixels, mask = map(to, _rig(3, cameras, points))
     assert _buckets.cameras_and_points(cameras, points) == (cameras, points) or cameras == 6
     jax.clear_caches()
@@ -182,11 +180,9 @@ def _photos():
         (lambda: demo.run().calibration, ("_paper_scene", "_pipeline")),
     ],
 )
-def test_programs_compile_once_on_other_threads(caplog, call, programs, monkeypatch):
+def test_programs_compile_once_on_other_threads(caplog, call, programs):
     """A call that runs several programs one after the other has them all compiled at once, on
-    other threads, each once (with `MVCALIB_COMPILE_AHEAD=1`: off by default); the answer is
-    that of the programs compiled on the spot."""
-    monkeypatch.setenv("MVCALIB_COMPILE_AHEAD", "1")
+    other threads, each once; the answer is that of the programs compiled on the spot."""
     jax.clear_caches()
     with caplog.at_level(logging.DEBUG), jax.log_compiles():
         result = call()
@@ -202,7 +198,7 @@ def test_programs_compile_once_on_other_threads(caplog, call, programs, monkeypa
     jax.tree_util.tree_map(np.testing.assert_array_equal, result, alone)
 
 
-def test_ahead_is_only_a_hint(monkeypatch):
+def test_ahead_is_only_a_hint():
     calls = []
 
     @functools.partial(_buckets.jit, static_argnames="k")
@@ -216,9 +212,6 @@ def test_ahead_is_only_a_hint(monkeypatch):
         return scaled(x, k=k)
 
     x = np.arange(3.0)
-    monkeypatch.delenv("MVCALIB_COMPILE_AHEAD", raising=False)
-    assert _buckets.ahead(checked, x, 2) is None and calls == []  # off by default
-    monkeypatch.setenv("MVCALIB_COMPILE_AHEAD", "1")
     _buckets.ahead(checked, x, -1)  # fails before its program: nothing, no error
     assert calls == [] and not scaled._compiling
     jax.jit(lambda x: _buckets.ahead(checked, x, 2) or x)(x)  # inside a trace: nothing
