@@ -247,9 +247,7 @@ class RigCalibration(eqx.Module):
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
         robust = bool((used != inliers).any())  # (a robust loss's)
         square = np.sum(np.asarray(self.residuals) ** 2, -1)
-        believed = inliers if robust else used
-        n = believed.sum(axis=(1, 2))
-        rms = np.sqrt(np.where(believed, square, 0).sum(axis=(1, 2)) / np.maximum(n, 1))
+        rms = _camera_rms(square, inliers if robust else used)
         calibrated = np.flatnonzero(np.asarray(self.status) == Status.OK)
         held = not {"alpha_v", "u0", "v0"} & set(self.parameter_names)
         stopped = "" if int(self.result) == 0 else (
@@ -304,9 +302,8 @@ class RigCalibration(eqx.Module):
                 f"{'camera':<{width}}  frames  points  rms (px)  inliers  inlier rms  centre std  "
                 "status"
             )
-            square = np.sum(np.asarray(self.residuals) ** 2, -1)
             k = inliers.sum(axis=(1, 2))
-            rms_in = np.sqrt(np.where(inliers, square, 0).sum(axis=(1, 2)) / np.maximum(k, 1))
+            rms_in = _camera_rms(np.sum(np.asarray(self.residuals) ** 2, -1), inliers)
         for c in range(len(status)):
             columns = f"{names[c]:<{width}}  {frames[c]:>6}  {n[c]:>6}  {rms[c]:>8.3f}  "
             if robust:
@@ -1229,6 +1226,13 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         result=result,
         poor_pairs=poor_pairs,
     )
+
+
+def _camera_rms(square, which):
+    """Each camera's RMS `(C,)` over the observations `which` `(C, F, N)`, from the squared
+    residual lengths `square` `(C, F, N)` (0 where it has none)."""
+    n = which.sum(axis=(1, 2))
+    return np.sqrt(np.where(which, square, 0).sum(axis=(1, 2)) / np.maximum(n, 1))
 
 
 def _fold_radius(dist) -> float:
