@@ -113,6 +113,40 @@ def _xla_optimisation(request):
         jax.config.update("jax_disable_most_optimizations", True)
 
 
+def _memory_maps() -> int:
+    """How many memory mappings this process holds (Linux; 0 elsewhere)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+def _map_limit() -> int:
+    """The kernel's limit on a process's memory mappings (`vm.max_map_count`, 65530 by
+    default)."""
+    try:
+        return int(pathlib.Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return 65530
+
+
+# Each program XLA compiles for the CPU takes four to six memory mappings (its code and data)
+# until JAX lets it go, and a test worker compiles thousands: one that had run test_rig.py and
+# three more files held 65,341 mappings, the kernel's limit, when XLA's next compile could not
+# map its code and crashed the worker (a segfault; CI at ea868b0 and five fresh-clone runs
+# since). Past a third of the limit, the compiled programs are let go after a test (JAX's
+# `clear_caches`, which frees most of them; tests that need theirs compile them again).
+_MAPS_CLEARED_AT = _map_limit() // 3
+
+
+@pytest.fixture(autouse=True)
+def _let_go_of_programs():
+    yield
+    if _memory_maps() > _MAPS_CLEARED_AT:
+        jax.clear_caches()
+
+
 DATA = pathlib.Path(
     os.environ.get(
         "MVCALIB_DATA", pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
