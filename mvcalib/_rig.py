@@ -112,12 +112,32 @@ FRAME_CHUNK = 128
 # start needs no more): 16 cameras x 1000 frames of a 6 x 8 board (each camera sees 200-600),
 # the start 0.9-1.4 against 5.9-7.5 s warm, the same rig (RMS to 1e-15, the same 10 steps).
 OWN_FRAMES = 128
+# Two cameras' own poses of the target in a frame they share agree (`_agreeing`) where the
+# relative pose they imply departs from the average over all the frames the two share by at most
+# this many times the median departure over the rig's pairs of cameras, and no less than this
+# many degrees and this fraction of the target's median distance. A `board_rig` of 5 cameras x
+# 100 frames (key 15), after each camera's own solve: the frames of the pairs of good cameras
+# depart 0.17 degrees and 0.2 % of the distance in the median (0.3 degrees and 0.6 % at most);
+# those of a camera whose video was mirrored, 10-57 degrees and 12-80 % (the median of each
+# pair): it agrees in none, the good cameras in 79-100 % of theirs. caliscope's recording, 10
+# corners a frame: 2.6 degrees and 4 %, and every camera agrees in 69-92 % of its frames.
+_AGREE_SPREAD, _AGREE_DEGREES, _AGREE_DISTANCE = 4.0, 5.0, 0.05
+_AGREE_SAMPLE = 128
+# A camera is judged (`_disagreeing`) on at least this many frames shared with the others (one
+# agrees with itself; two of a good camera agree with each other).
+_AGREE_MIN_FRAMES = 2
 
 
 # ------------------------------------------------------------------------------ the result
 _TOO_FEW_IN_A_RIG = (
     "too few points: no frame shows it enough of the target (4 points of a board, 6 of a 3-D "
     "target) to pose it"
+)
+_DISAGREEING = (
+    "poor fit: its own poses of the target disagree with the other cameras' in most of the "
+    "frames they share, so no one place in the rig fits it, and it was left out: is its image "
+    "mirrored, are its point ids mirrored or out of order, are its frames out of step with the "
+    "others', or are they another camera's?"
 )
 _DEGENERATE_IN_A_RIG = (
     "degenerate: its frames of the target do not determine its intrinsics (one view of a board, "
@@ -154,7 +174,8 @@ class RigCalibration(eqx.Module):
       points); DEGENERATE (its frames do not determine its intrinsics); NOT_CONNECTED (no chain
       of shared frames links it to the reference camera); POOR_FIT (its reprojection RMS
       exceeds `max_relative_rms` of its pixels' spread: the solve failed, or its detections are
-      wrong).
+      wrong; or, its RMS NaN, its own poses of the target disagree with the other cameras', and
+      it took no part in the solve).
     - `initial`: `(C,)` the closed-form cameras that seeded the refinement.
     - `rms`: reprojection RMS over every observation used (pixels); `camera_rms` `(C,)`,
       `frame_rms` `(F,)` the same per camera and per frame (a POOR_FIT camera's from the solve
@@ -231,7 +252,8 @@ class RigCalibration(eqx.Module):
     def messages(self) -> list[str]:
         """One line per camera: its status's message, in a rig's words where they differ from
         a single camera's (a degenerate camera's frames did not determine its intrinsics; too
-        few points are fewer than a board's 4 or a 3-D target's 6 in every frame); for a
+        few points are fewer than a board's 4 or a 3-D target's 6 in every frame; a camera left
+        out for poses that disagree with the rest's says so); for a
         calibrated camera, a note where the joint solve stopped before converging, where its
         RMS is more than twice the median of the rig's other calibrated cameras
         (`_misfit_note`; with a robust loss, over the observations it believes), where a robust
@@ -244,6 +266,8 @@ class RigCalibration(eqx.Module):
         messages = [in_a_rig.get(int(s), Status(int(s)).message) for s in np.asarray(self.status)]
         if np.ndim(self.status) != 1:
             return messages
+        for c in np.flatnonzero(_left_out(self)):
+            messages[c] = _DISAGREEING
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
         robust = bool((used != inliers).any())  # (a robust loss's)
         square = np.sum(np.asarray(self.residuals) ** 2, -1)
@@ -404,9 +428,10 @@ def _pair_poses_object(target, pixels, mask, K, rcond):
     return K, determined, cams.R, cams.t, status
 
 
-def _relative_poses(R, t, ok):
+def _relative_poses(R, t, ok, distance):
     """For every pair of cameras (c, d): camera d's frame to camera c's, `(C, C, 3, 3)`,
-    `(C, C, 3)`, the robust average over the frames both saw, and how many they share."""
+    `(C, C, 3)`, the robust average over the frames both saw; how many frames they share; and
+    in how many of those the two cameras' own poses agree with that average (`_agreeing`)."""
 
     def from_d(inputs):
         Rd, td, okd = inputs  # (F, 3, 3), (F, 3), (F,)
@@ -414,14 +439,60 @@ def _relative_poses(R, t, ok):
         tcd = t - jnp.einsum("cfij,fj->cfi", Rcd, td)
         w = (ok & okd[None]).astype(R.dtype)
         Rm, tm = jax.vmap(_average_pose)(Rcd, tcd, w)
-        return Rm, tm, jnp.sum(w, 1)
+        # each frame's departure from the average: the angle between the rotations (from the
+        # trace of one times the other's transpose) and the distance between the translations
+        cos = (jnp.einsum("cfij,cij->cf", Rcd, Rm) - 1.0) / 2.0
+        turned = jnp.rad2deg(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
+        moved = jnp.linalg.norm(tcd - tm[:, None], axis=-1) / distance
+        return Rm, tm, w, turned, moved
 
     eye = jnp.eye(3, dtype=R.dtype)
     safe = lambda a, k: jnp.where(ok.reshape(ok.shape + (1,) * k), a, eye if k == 2 else 0.0)  # noqa: E731
     Rs, ts = safe(R, 2), safe(t, 1)
-    Rm, tm, shared = jax.lax.map(from_d, (Rs, ts, ok))
     # (the map runs over d): Rm[d, c] is d -> c
-    return jnp.swapaxes(Rm, 0, 1), jnp.swapaxes(tm, 0, 1), jnp.swapaxes(shared, 0, 1)
+    Rm, tm, w, turned, moved = (jnp.swapaxes(x, 0, 1) for x in jax.lax.map(from_d, (Rs, ts, ok)))
+    return Rm, tm, jnp.sum(w, -1), _agreeing(w > 0, turned, moved)
+
+
+def _agreeing(both, turned, moved):
+    """How many of the frames two cameras share `(C, C)` (`both`, `(C, C, F)`) agree with their
+    average relative pose: within `_AGREE_SPREAD` times the median departure over all pairs'
+    shared frames, and no less than `_AGREE_DEGREES` and `_AGREE_DISTANCE` of the
+    target's distance (a frame's poses are as good as its points: caliscope's recording, 10 of a
+    board's corners a frame, departs 2.6 degrees and 4 % of the distance in the median; a
+    `board_rig` of 108 corners 0.17 degrees and 0.2 %)."""
+    C, _, F = both.shape
+    pairs = both & ~jnp.eye(C, dtype=bool)[..., None]
+    # (the median from at most `_AGREE_SAMPLE` frames, evenly spread: 64 cameras x 1024 frames
+    # took 0.25 s, all of them sorted)
+    every = max(1, F // _AGREE_SAMPLE)
+    flat = lambda x: x[..., ::every].reshape(-1)  # noqa: E731
+    median = lambda x: _dlt._masked_median(flat(x), flat(pairs), sort=True)  # noqa: SLF001, E731
+    degrees = jnp.maximum(_AGREE_DEGREES, _AGREE_SPREAD * median(turned))
+    distance = jnp.maximum(_AGREE_DISTANCE, _AGREE_SPREAD * median(moved))
+    return jnp.sum(both & (turned <= degrees) & (moved <= distance), -1).astype(turned.dtype)
+
+
+def _disagreeing(shared, agree):
+    """The cameras `(C,)` whose own poses disagree with the other cameras' in most of the frames
+    they share (`_relative_poses`), one at a time, the worst first, each judged without the
+    cameras found before it, and while more than two are left: a camera whose image or point ids
+    are mirrored, or whose frames are out of step with the rest, has no rigid place in the rig
+    (a user's trial: one webcam's video mirrored, and a robust loss kept it, OK at 0.41 px, 35
+    degrees and a metre off, and threw out a good camera). Judged on `_AGREE_MIN_FRAMES` shared
+    frames or more."""
+    C = shared.shape[0]
+    others = ~jnp.eye(C, dtype=bool)  # (a camera's frames agree with themselves)
+
+    def step(_, out):
+        keep = others & ~out[None, :]
+        s = jnp.sum(jnp.where(keep, shared, 0.0), 1)
+        a = jnp.sum(jnp.where(keep, agree, 0.0), 1)
+        fraction = jnp.where(~out & (s >= _AGREE_MIN_FRAMES), a / jnp.maximum(s, 1.0), jnp.inf)
+        worst = jnp.argmin(fraction)
+        return out.at[worst].set(out[worst] | (fraction[worst] < 0.5))
+
+    return jax.lax.fori_loop(0, max(C - 2, 0), step, jnp.zeros(C, bool))
 
 
 def _chain(Rrel, trel, shared, reference):
@@ -537,16 +608,27 @@ def _initialise(
         Rp = Rp.at[rows, take].set(jnp.where(used[..., None, None], Rs, pick(Rp)))
         tp = tp.at[rows, take].set(jnp.where(used[..., None], ts, pick(tp)))
         solved = jnp.zeros_like(ok).at[rows, take].set(used)
-    Rrel, trel, shared = _relative_poses(Rp, tp, ok)
+    Rrel, trel, shared, agree = _relative_poses(Rp, tp, ok, distance)
+    lost = jnp.zeros(C, bool)
     if not given:
         # A camera that cannot fit its own frames, each with a pose of its own (`poor_fit`, as
         # the joint solve judges a camera), links others only where nothing else does: its pairs
         # weigh less than one shared frame. (Left out of the chain altogether, a good camera
         # whose own solve wandered off, which the joint solve brings back, cost a second solve.)
         lost = _own_fit(own, Rp, tp, solved, target, pixels, mask, max_relative_rms)
-        shared = jnp.where(lost[:, None] | lost[None, :], shared / (F + 1), shared)
-    linked, R, t = _chain(Rrel, trel, shared, reference)
-    if given and not any(i in POSE_INDICES for i in free):  # the poses held: the given ones
+    # A camera whose own poses disagree with the rest's in most frames (those of the cameras
+    # that fit their own frames, where poses are not held) is left out: POOR_FIT. The rest link
+    # through the frames where they agree, and through the others only where nothing else does.
+    held = given and not any(i in POSE_INDICES for i in free)
+    judged = ~lost[:, None] & ~lost[None, :]
+    disagreeing = jnp.zeros(C, bool) if held else _disagreeing(
+        jnp.where(judged, shared, 0.0), jnp.where(judged, agree, 0.0)
+    )  # fmt: skip
+    weight = agree + (shared - agree) / (F + 1)
+    weight = jnp.where(lost[:, None] | lost[None, :], shared / (F + 1), weight)
+    weight = jnp.where(disagreeing[:, None] | disagreeing[None, :], 0.0, weight)
+    linked, R, t = _chain(Rrel, trel, weight, reference)
+    if held:  # the given poses
         linked, R, t = jnp.ones_like(linked), cameras.R, cameras.t
     usable = linked & jnp.any(ok, 1)
     # no frame with enough points is TOO_FEW_POINTS before its intrinsics, which no frame could
@@ -560,7 +642,9 @@ def _initialise(
     )
     status = jnp.where(
         usable, Status.OK, jnp.where(status == Status.OK, Status.TOO_FEW_POINTS, status)
-    ).astype(jnp.int32)
+    )
+    status = jnp.where(disagreeing, Status.POOR_FIT, status).astype(jnp.int32)
+    usable = usable & ~disagreeing
     pair = ok & usable[:, None]
     # each frame's pose in the reference frame, from every camera that saw it
     Rf = jnp.einsum("cji,cfjk->cfik", R, Rp)
@@ -1479,8 +1563,12 @@ def calibrate_rig(
     Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
     which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
     is neither planar nor 3-D. Cameras that cannot be calibrated get a status and NaN; the
-    others are calibrated as if they were absent. A POOR_FIT camera is found by the solve it
-    took part in, where it pulled the others: called with concrete arrays, the rig is solved
+    others are calibrated as if they were absent. A camera (of three or more) whose own poses
+    of the target disagree with the other cameras' in most of the frames they share (a mirrored
+    image or mirrored point ids: no one place in the rig fits it) is POOR_FIT before the solve
+    and left out of it, its RMS NaN and its message saying why. Any other POOR_FIT camera is
+    found by the solve it took part in, where it pulled the others: called with concrete arrays,
+    the rig is solved
     again without it (by the same compiled program) until no camera is newly flagged; inside
     `jax.jit` it is only flagged. (A robust `loss` keeps wrong detections of an otherwise good
     camera from pulling the others.) With a robust `loss` and concrete arrays, so are the
@@ -1717,6 +1805,8 @@ def calibrate_rig(
     # in reverse order in three frames (the board turned by 180 degrees), `Huber(1.0)`: the two
     # frames other cameras saw are left out, the camera kept.
     gone = np.zeros((C, F), bool)  # the pairs left out
+    if concrete:  # (the cameras the start left out, their poses at odds with the rest's)
+        dropped |= _left_out(result)
     while concrete:
         poor = (np.asarray(result.status) == Status.POOR_FIT) & ~dropped
         rms = np.asarray(result.camera_rms)
@@ -1790,6 +1880,12 @@ def _marked_poor(result: RigCalibration, dropped, dropped_rms) -> RigCalibration
     rms = np.where(dropped, dropped_rms, np.asarray(result.camera_rms))
     # (from NumPy: no small eager programs)
     return eqx.tree_at(lambda r: (r.status, r.camera_rms), result, jax.device_put((status, rms)))
+
+
+def _left_out(result: RigCalibration) -> np.ndarray:
+    """The POOR_FIT cameras `(C,)` that took no part in the solve (`_disagreeing`): no RMS."""
+    poor = np.asarray(result.status) == Status.POOR_FIT
+    return poor & np.isnan(np.asarray(result.camera_rms))
 
 
 def _without_one(failed: SolveFailed, solve, mask, observed, reference, say):

@@ -471,10 +471,12 @@ def test_a_camera_that_fits_far_worse_than_the_rest_is_pointed_out():
 def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
     """A user's trial: one webcam's video mirrored (selfie mode). Without a loss the joint solve
     left every camera POOR_FIT and raised SolveFailed, naming the good cameras' worst frames;
-    the rig is now solved without each camera in turn and the one whose absence calibrates the
-    rest is POOR_FIT. With its corner ids mirrored instead and a Huber loss, it was left out as
-    TOO_FEW_POINTS ("no frame shows it enough of the target", of 28 frames of all 108 corners):
-    POOR_FIT, as left out for its fit."""
+    with its corner ids mirrored instead and a Huber loss, it was left out as TOO_FEW_POINTS ("no
+    frame shows it enough of the target", of 28 frames of all 108 corners); with `Cauchy(2.0)`
+    it was OK at 0.41 px, 35 degrees and a metre off, and a good camera NOT_CONNECTED (until
+    2026-12-06). Its own poses of the board disagree with the other cameras' in every frame
+    they share (10-57 degrees from the pairs' averages, the good pairs' within 0.3): it is left
+    out before the solve, POOR_FIT, and says why."""
     rig = mc.synthetic.board_rig(jax.random.key(15), n_cameras=5, n_frames=100, noise=0.3)
     pixels, mask = np.array(rig.pixels), np.array(rig.mask)
     centres, rotations = _in_reference_frame(rig.cameras)
@@ -484,14 +486,38 @@ def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
     ids = pixels.copy()
     ids[2], mask_ids = pixels[2][:, flipped], mask.copy()
     mask_ids[2] = mask[2][:, flipped]
-    for pixels_, mask_, loss in ((mirrored, mask, None), (ids, mask_ids, mc.Huber(2.0))):
+    cases = (
+        (mirrored, mask, None),
+        (ids, mask_ids, mc.Huber(2.0)),
+        (mirrored, mask, mc.Cauchy(2.0)),
+    )
+    for pixels_, mask_, loss in cases:
         result = mc.calibrate_rig(rig.target, pixels_, mask_, loss=loss)
         status = np.asarray(result.status)
-        assert status[2] == mc.Status.POOR_FIT and np.isfinite(result.camera_rms[2])
-        assert (np.delete(status, 2) == mc.Status.OK).all(), status
+        assert status[2] == mc.Status.POOR_FIT, (loss, status)
+        assert "disagree with the other cameras'" in result.messages()[2]
+        assert (np.delete(status, 2) == mc.Status.OK).all(), (loss, status)
         good = np.arange(5) != 2
         off = np.linalg.norm(np.asarray(result.cameras.center)[good] - centres[good], axis=1)
         assert off.max() < 0.005, off  # metres; a baseline of ~2.5 m
+
+
+def test_a_mirrored_camera_is_found_whichever_the_reference():
+    """The same trial, other rigs (keys 490-492, camera k mirrored, camera k + 1 the reference):
+    before the start left it out, with Huber(2.0) it was OK 15 m off (key 491), without a loss
+    two good cameras were POOR_FIT (491) or 0.3-0.6 m off (492), with Cauchy(2.0) it was OK 2.3 m
+    off (490). Now only it is POOR_FIT (9 of 9 rigs and losses)."""
+    for k, loss in ((1, mc.Huber(2.0)), (2, None)):
+        rig = mc.synthetic.board_rig(jax.random.key(490 + k), n_cameras=5, n_frames=100, noise=0.3)
+        pixels = np.array(rig.pixels)
+        pixels[k, ..., 0] = 1279.0 - pixels[k, ..., 0]
+        result = mc.calibrate_rig(rig.target, pixels, rig.mask, loss=loss, reference=k + 1)
+        expected = np.where(np.arange(5) == k, mc.Status.POOR_FIT, mc.Status.OK)
+        np.testing.assert_array_equal(np.asarray(result.status), expected)
+        R0, t0 = np.asarray(rig.cameras.R[k + 1]), np.asarray(rig.cameras.t[k + 1])
+        truth = np.delete(np.asarray(rig.cameras.center) @ R0.T + t0, k, axis=0)
+        found = np.delete(np.asarray(result.cameras.center), k, axis=0)
+        assert np.linalg.norm(found - truth, axis=1).max() < 0.005  # metres
 
 
 def test_a_solve_stopped_by_max_steps_says_so_for_every_camera():
@@ -525,18 +551,22 @@ def test_a_starting_camera_without_values_starts_from_its_own_frames():
 def test_a_camera_whose_observations_a_robust_loss_mostly_sets_aside_is_pointed_out():
     """A user's trial: camera 1's video mirrored, `Huber(2.0)`: every camera OK and
     "calibrated", camera 1 at 10 px RMS with 935 of its 2,315 observations set aside, 77 m
-    off, the good cameras pulled 22-49 mm, the solve stopped at 100 steps. Its message now says
-    what the loss set aside and how far it fits worse than the rest; every camera's that the
-    solve did not converge."""
+    off, the good cameras pulled 22-49 mm. (A mirrored camera is now left out before the solve:
+    `test_a_mirrored_camera_is_found_whichever_the_reference`.) A camera of which the loss sets
+    aside more than a fifth of its observations, here 30 % moved by 40 px, says so; the others
+    do not."""
     rig = mc.synthetic.board_rig(jax.random.key(491), n_cameras=5, n_frames=100, noise=0.3)
-    pixels = np.array(rig.pixels)
-    pixels[1, ..., 0] = 1279.0 - pixels[1, ..., 0]
-    result = mc.calibrate_rig(rig.target, pixels, rig.mask, loss=mc.Huber(2.0), reference=2)
+    pixels, mask = np.array(rig.pixels), np.asarray(rig.mask)
+    rng = np.random.default_rng(0)
+    seen = np.argwhere(mask[1])
+    wild = seen[rng.choice(len(seen), int(0.3 * len(seen)), replace=False)]
+    angle = rng.uniform(0, 2 * np.pi, len(wild))
+    pixels[1, wild[:, 0], wild[:, 1]] += 40 * np.c_[np.cos(angle), np.sin(angle)]
+    result = mc.calibrate_rig(rig.target, pixels, mask, loss=mc.Huber(2.0), reference=2)
     messages = result.messages()
-    assert "the robust loss set aside" in messages[1] and "times the median" in messages[1]
+    assert bool(result.ok.all()), messages
+    assert "the robust loss set aside" in messages[1], messages
     assert not any("set aside" in m for i, m in enumerate(messages) if i != 1), messages
-    if not bool(result.converged):
-        assert all("without converging" in m for m in messages)
 
 
 def test_a_failed_reference_names_the_worst_pairs_and_the_robust_loss():
