@@ -468,7 +468,7 @@ def test_a_camera_that_fits_far_worse_than_the_rest_is_pointed_out():
     assert [m for i, m in enumerate(messages) if i != 2] == ["calibrated"] * 3
 
 
-def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
+def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated(capsys):
     """A user's trial: one webcam's video mirrored (selfie mode). Without a loss the joint solve
     left every camera POOR_FIT and raised SolveFailed, naming the good cameras' worst frames;
     with its corner ids mirrored instead and a Huber loss, it was left out as TOO_FEW_POINTS ("no
@@ -492,7 +492,10 @@ def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated():
         (mirrored, mask, mc.Cauchy(2.0)),
     )
     for pixels_, mask_, loss in cases:
-        result = mc.calibrate_rig(rig.target, pixels_, mask_, loss=loss)
+        result = mc.calibrate_rig(rig.target, pixels_, mask_, loss=loss, verbose=True)
+        # (calibrated against the rest of the rig, it fits mirrored: no second solve for it)
+        said = capsys.readouterr().err
+        assert "camera 2: its own poses disagree" in said and "against the rest" not in said
         status = np.asarray(result.status)
         assert status[2] == mc.Status.POOR_FIT, (loss, status)
         assert "disagree with the other cameras'" in result.messages()[2]
