@@ -1476,13 +1476,13 @@ def _poor_pairs(square, used, pixels, ok, max_relative_rms, loss):
     return ok[:, None] & seen & poor
 
 
-_FISHEYE_START_FRAMES = 20
+_OWN_START_FRAMES = 20
 
 
 def _own_start(target, pixels, mask, image_size, loss, lens="fisheye", which=None) -> Camera:
     """Each camera (of `which`, default all) from its own frames of a planar target: intrinsics
     and distortion by `calibrate_planar(lens=lens, loss=loss)` of up to
-    `_FISHEYE_START_FRAMES` of them, evenly spread (so that every camera with as many runs the
+    `_OWN_START_FRAMES` of them, evenly spread (so that every camera with as many runs the
     same compiled program; NaN with fewer than 2 frames, or fewer than 2 of them OK); the poses
     are the closed form's business, so these are the identity. (Until 2026-12-05 without the
     loss, and NaN unless every frame was OK: with 1 % of the corners moved by 50 px, two of six
@@ -1495,7 +1495,7 @@ def _own_start(target, pixels, mask, image_size, loss, lens="fisheye", which=Non
         frames = np.flatnonzero(mask[c].sum(-1) >= MIN_PLANE_POINTS)
         if len(frames) < 2:
             continue
-        spread = np.linspace(0, len(frames) - 1, min(len(frames), _FISHEYE_START_FRAMES))
+        spread = np.linspace(0, len(frames) - 1, min(len(frames), _OWN_START_FRAMES))
         frames = frames[np.unique(spread.round().astype(int))]
         px = np.where(mask[c, frames, :, None], pixels[c, frames], np.nan)
         own = calibrate_planar(
@@ -1583,25 +1583,24 @@ def calibrate_rig(
     Raises `ValueError` for mismatched shapes, NaN or inf among the visible pixels, a rig in
     which nothing is visible, a reference camera that cannot be calibrated, or a `target` that
     is neither planar nor 3-D. Cameras that cannot be calibrated get a status and NaN; the
-    others are calibrated as if they were absent. A camera (of three or more) whose own poses
-    of the target disagree with the other cameras' in most of the frames they share (a mirrored
+    others are calibrated as if they were absent. A camera (of three or more) whose own poses of
+    the target disagree with the other cameras' in most of the frames they share (a mirrored
     image or mirrored point ids: no one place in the rig fits it) is POOR_FIT before the solve
     and left out of it, its RMS NaN and its message saying why. Any other POOR_FIT camera is
     found by the solve it took part in, where it pulled the others: called with concrete arrays,
-    the rig is solved
-    again without it (by the same compiled program) until no camera is newly flagged; inside
-    `jax.jit` it is only flagged. (A robust `loss` keeps wrong detections of an otherwise good
-    camera from pulling the others.) With a robust `loss` and concrete arrays, so are the
-    (camera, frame) pairs that fit out of all proportion (judged as `calibrate_planar` judges a
-    view: the RMS their median distance implies, above `max_relative_rms` of their pixels'
-    spread and 3 times the median pair's: a camera's wrong detections in a frame, such as a
-    board seen turned by 180 degrees), which the loss would keep at a bounded cost while they
-    pull the camera; they are not in `used`.
-    Then, with concrete arrays, a camera left out, or the worst
-    camera where its RMS is more than 3 times the median camera's (a good camera whose own
-    frames left its start loose can end in another minimum), is calibrated from its points in
-    the frames the rig posed, and the rig solved once more from there; that answer is taken if
-    every camera is OK and the cameras fit better (`verbose` says so).
+    the rig is solved again without it (by the same compiled program) until no camera is newly
+    flagged; inside `jax.jit` it is only flagged. (A robust `loss` keeps wrong detections of an
+    otherwise good camera from pulling the others.) With a robust `loss` and concrete arrays, so
+    are the (camera, frame) pairs that fit out of all proportion (judged as `calibrate_planar`
+    judges a view: the RMS their median distance implies, above `max_relative_rms` of their
+    pixels' spread and 3 times the median pair's: a camera's wrong detections in a frame, such
+    as a board seen turned by 180 degrees), which the loss would keep at a bounded cost while
+    they pull the camera; they are not in `used`. Then, with concrete arrays, a camera left out,
+    or the worst camera where its RMS is more than 3 times the median camera's (a good camera
+    whose own frames left its start loose can end in another minimum), is calibrated from its
+    points in the frames the rig posed (unless it sees them mirrored), and the rig solved once
+    more from there; that answer is taken if every camera is OK and the cameras fit better
+    (`verbose` says so).
 
     **Example:**
 

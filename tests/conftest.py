@@ -53,12 +53,12 @@ def _ask_for_legacy_emitters():
 _ask_for_legacy_emitters()
 LEGACY = LEGACY_EMITTERS in _xla_flags()
 
-# No persistent compilation cache for the run: XLA crashed (a segfault) serialising a compiled
-# program into it, and once deserialising one from it, in two of the last four runs of the
-# suite on CI's 2-core machine (jax 0.10.2; an xdist worker down, its file's tests failed).
-# Each process compiles its own programs (no `jax_compilation_cache_dir` here, none passed to
-# the child processes); the command line's own cache, which its tests turn on or off, is
-# theirs.
+# No persistent compilation cache for the run. It was taken out when XLA crashed in a worker
+# while serialising a program into it or loading one from it; the crashes went on without it,
+# and their cause was a worker out of memory mappings (`_let_go_of_programs`, below), not the
+# cache. The suite has not been run with the cache since. Each process compiles its own
+# programs (no `jax_compilation_cache_dir` here, none passed to the child processes); the
+# command line's own cache, which its tests turn on or off, is theirs.
 
 
 def default_codegen_env() -> dict:
