@@ -92,8 +92,8 @@ QUICK_SIZE = 2**17
 # warm calls pay for the padded frames: 0.18 against 0.15 s (40 frames), 0.22 against 0.17 (50).
 MIN_FRAMES, FRAME_BITS = 32, 2
 # The results with a frame axis, and where it is (the rest have none).
-_FRAME_AXIS = dict(target_poses=0, frame_rms=0, residuals=1, observed=1, used=1, inliers=1,
-                   poor_pairs=1)  # fmt: skip
+_FRAME_AXIS = dict(target_poses=0, frame_rms=0, alone_rms=1, residuals=1, observed=1, used=1,
+                   inliers=1, poor_pairs=1)  # fmt: skip
 # The worst camera, if its RMS is more than this many times the median of the rig's calibrated
 # cameras, is calibrated again against the rest of the rig (`calibrate_rig`). 16 cameras x 100
 # frames of a 6 x 8 board (key 10): camera 2's own frames put its focal length at 10,885 px in
@@ -180,6 +180,11 @@ class RigCalibration(eqx.Module):
     - `rms`: reprojection RMS over every observation used (pixels); `camera_rms` `(C,)`,
       `frame_rms` `(F,)` the same per camera and per frame (a POOR_FIT camera's from the solve
       that flagged it).
+    - `alone_rms`: `(C, F)` each (camera, frame) pair's RMS with its points fitted alone, by a
+      homography (a board) or a DLT (a 3-D target), per degree of freedom: no intrinsics, lens
+      or pose held (a given lens's distortion removed first), about the noise of the detections
+      where the distortion is small; NaN where the pair's closed form failed. A camera whose
+      frames fit several times worse in the rig says so (`messages`).
     - `residuals`: `(C, F, N, 2)` reprojected minus observed for every observation of a
       calibrated camera in a frame with a pose (`observed`, the skipped pairs' too), zero
       elsewhere; `used` `(C, F, N)` the observations that took part in the fit; `inliers` those
@@ -204,6 +209,7 @@ class RigCalibration(eqx.Module):
     rms: Float[Array, ""]
     camera_rms: Float[Array, " C"]
     frame_rms: Float[Array, " F"]
+    alone_rms: Float[Array, "C F"]
     residuals: Float[Array, "C F N 2"]
     observed: Bool[Array, "C F N"]
     used: Bool[Array, "C F N"]
@@ -255,8 +261,10 @@ class RigCalibration(eqx.Module):
         few points are fewer than a board's 4 or a 3-D target's 6 in every frame; a camera left
         out for poses that disagree with the rest's says so); for a
         calibrated camera, a note where the joint solve stopped before converging, where its
-        RMS is more than twice the median of the rig's other calibrated cameras
-        (`_misfit_note`; with a robust loss, over the observations it believes), where a robust
+        frames fit more than 3 times worse in the rig than each alone (`alone_rms`, medians over
+        its frames), else where its RMS is more than twice the median of the rig's other
+        calibrated cameras (`_misfit_note`; with a robust loss, over the observations it
+        believes), where a robust
         loss set aside more than a fifth of its observations, and (least squares) where some
         of its observations lie far beyond the rest (`_far_note`), or another camera's do
         (`_pulled_note`)."""
@@ -272,9 +280,12 @@ class RigCalibration(eqx.Module):
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
         robust = bool((used != inliers).any())  # (a robust loss's)
         square = np.sum(np.asarray(self.residuals) ** 2, -1)
+        alone = np.asarray(self.alone_rms)
         rms = _camera_rms(square, inliers if robust else used)
         calibrated = np.flatnonzero(np.asarray(self.status) == Status.OK)
-        held = not {"alpha_v", "u0", "v0"} & set(self.parameter_names)
+        free = set(self.parameter_names)
+        held = {"intrinsics"} if not {"alpha_v", "u0", "v0"} & free else set()
+        held |= {"pose"} if not {"rx", "tx"} & free else set()
         stopped = "" if int(self.result) == 0 else (
             f"; but the joint solve stopped after {int(self.iterations)} steps without "
             "converging (`print` the result for why): its parameters are not the least-squares "
@@ -288,8 +299,10 @@ class RigCalibration(eqx.Module):
             if robust:
                 messages[c] += _set_aside_note(int(used[c].sum()), int(inliers[c].sum()))
             else:
-                messages[c] += far[c] or _pulled_note(pulling)
-            messages[c] += _misfit_note(float(rms[c]), rms[calibrated[calibrated != c]], held)
+                messages[c] += far[c] or ("" if "pose" in held else _pulled_note(pulling))
+            frames = _in_rig_and_alone(square[c], (inliers if robust else used)[c], alone[c])
+            others = rms[calibrated[calibrated != c]]
+            messages[c] += _misfit_note(float(rms[c]), others, held, frames)
             if cameras.lens == "pinhole":
                 messages[c] += _fold_note(cameras[c])
         return messages
@@ -428,7 +441,18 @@ def _pair_poses_object(target, pixels, mask, K, rcond):
             ],
             -2,
         )
-    return K, determined, cams.R, cams.t, status
+    return K, determined, cams.R, cams.t, status, P.reshape(C, F, 3, 4)
+
+
+def _alone_rms(projected, pixels, fitted, parameters: int):
+    """`(C, F)`: each (camera, frame) pair's RMS where its points `fitted` are fitted alone, by a
+    model of `parameters` per pair (a homography's 8, a DLT's 11) that projects them to
+    `projected` `(C, F, N, 2)`, counted per degree of freedom (`sqrt(sum / (n - parameters / 2))`:
+    what the pixels' noise gives, as a pair's RMS in the rig with its pose alone free does);
+    NaN with too few points."""
+    square = jnp.sum(jnp.where(fitted[..., None], projected - pixels, 0.0) ** 2, -1)
+    dof = jnp.sum(fitted, -1) - parameters / 2
+    return jnp.where(dof >= 1, jnp.sqrt(jnp.sum(square, -1) / jnp.maximum(dof, 1)), jnp.nan)
 
 
 def _relative_poses(R, t, ok, distance):
@@ -557,9 +581,14 @@ def _initialise(
         K, determined, Rp, tp, pair_status, H = _pair_poses_planar(
             plane, xy, pixels, closed, K, rcond
         )
+        x = jnp.einsum("cfij,nj->cfni", H[..., :2], xy) + H[..., None, :, 2]
     else:
-        K, determined, Rp, tp, pair_status = _pair_poses_object(target, pixels, closed, K, rcond)
+        K, determined, Rp, tp, pair_status, P = _pair_poses_object(target, pixels, closed, K, rcond)
+        x = jnp.einsum("cfij,nj->cfni", P[..., :3], target) + P[..., None, :, 3]
     ok = pair_status == Status.OK
+    # what each pair's points fit to alone, with no intrinsics or lens to hold (`messages`)
+    alone = _alone_rms(x[..., :2] / x[..., 2:], pixels, closed, 8 if planar else 11)
+    alone = jnp.where(ok, alone, jnp.nan)
     # (a pose that passed its own checks may still not be finite: with exact pixels and all but
     # one visible point of a 3-D target on one face, the DLT's null space is two-dimensional and
     # a rank-one P can come out, which does not decompose)
@@ -674,7 +703,7 @@ def _initialise(
     failed = (pair_status == Status.DEGENERATE) | beyond if loss is None else jnp.any(mask, -1)
     pair = pair | (failed & usable[:, None] & frame_ok[None, :])
     initial = eqx.tree_at(lambda c: (c.R, c.t), own, (R, t))
-    return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance
+    return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance, alone
 
 
 def _own_fit(own, Rp, tp, solved, target, pixels, mask, max_relative_rms):
@@ -1240,7 +1269,7 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
     """The joint solve from `_start`'s rig, its uncertainty and report; the parameters the solve
     holds carry the derivatives of the `given` cameras' (`_held_through`)."""
     pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
-    initial, frames, pair, frame_ok, status, distance = start
+    initial, frames, pair, frame_ok, status, distance, alone = start
     if given is not None:
         initial = _held_through(initial, given, free)
     C = pair.shape[0]
@@ -1301,6 +1330,7 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         rms=rms,
         camera_rms=camera_rms,
         frame_rms=frame_rms,
+        alone_rms=alone,
         residuals=residuals,
         observed=observed,
         used=used,
@@ -1420,21 +1450,58 @@ def _pulled_note(pulling) -> str:
 # and held there came out OK at 0.98 px against the others' 0.42-0.49, its centre 95 mm off
 # against a standard error of 1.1 mm, and nothing said.
 _MISFIT = 2.0
+# The same where a camera's frames fit this many times worse in the rig than each alone
+# (`RigCalibration.alone_rms`, the medians over its frames; at least `_ALONE_FRAMES` frames,
+# and no less than `_ALONE_FLOOR` px): every camera may be wrong alike, as the median of the rig
+# is then. A user's trial: caliscope's recording with every camera's intrinsics taken from a
+# calibration at another resolution and held: two cameras OK at 2.6 and 2.9 px, one 0.6 m off
+# against a standard error of 11 mm, and nothing said; their frames fit 3.3 and 5.8 times worse
+# in the rig. With caliscope's own intrinsics 1.0-2.5 times (its webcams' frames are not quite
+# simultaneous: with the intrinsics free, 0.5-1.3 times), synthetic rigs 0.95-1.0.
+_ALONE_TIMES, _ALONE_FRAMES, _ALONE_FLOOR = 3.0, 3, 0.02
 
 
-def _misfit_note(rms: float, others, held: bool) -> str:
-    """A note where a camera fits its observations `_MISFIT` times worse than the rig's other
-    calibrated cameras (at least two) do theirs, by RMS: its model (held intrinsics that no
-    longer fit, a lens its distortion terms miss) or its detections are wrong, and its standard
-    errors, which take the model as right, understate how far off it may be."""
+def _in_rig_and_alone(square, used, alone) -> tuple[float, float]:
+    """A camera's median over its frames of its RMS in the rig (from the squared residual
+    lengths `square` `(F, N)` of its points `used`) and of `alone` `(F,)`, over the frames that
+    have both; NaN with fewer than `_ALONE_FRAMES`."""
+    n = used.sum(-1)
+    frames = (n > 0) & np.isfinite(alone)
+    if frames.sum() < _ALONE_FRAMES:
+        return np.nan, np.nan
+    in_rig = np.sqrt(np.where(used, square, 0.0).sum(-1)[frames] / n[frames])
+    return float(np.median(in_rig)), float(np.median(alone[frames]))
+
+
+def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
+    """A note where a camera's frames fit `_ALONE_TIMES` times worse in the rig than each alone
+    (`frames`: the medians `_in_rig_and_alone`), else where it fits `_MISFIT` times worse than
+    the rig's other calibrated cameras (at least two) do theirs, by RMS: its model (`held`
+    intrinsics that no longer fit, poses that moved, a lens its distortion terms miss), its
+    frames' timing or its detections are wrong, and its standard errors, which take the model as
+    right, understate how far off it may be."""
+    if "pose" in held:
+        cause = (
+            "its pose was held (`fix`): the rig may have moved, or the target's size or units "
+            "differ from the rig's"
+        )
+    elif "intrinsics" in held:
+        cause = (
+            "its intrinsics were held (`fix`): do they still fit this camera (zoom, focus, "
+            "resolution)? Calibrate with them free to compare"
+        )
+    else:
+        cause = "its lens model (distortion terms) or its detections may not fit"
+    in_rig, alone = frames
+    if in_rig > _ALONE_TIMES * max(alone, _ALONE_FLOOR):
+        return (
+            f"; but its frames fit {in_rig / alone:.1f} times worse in the rig ({in_rig:.3g} px "
+            f"in the median frame) than each alone ({alone:.3g} px, a homography or DLT a frame): "
+            f"{cause}; or its frames are out of step with the other cameras'. Its standard "
+            "errors take its model as right and understate how far off it may be"
+        )
     if len(others) < 2 or not rms > _MISFIT * float(np.median(others)):
         return ""
-    cause = (
-        "its intrinsics were held (`fix`): do they still fit this camera (zoom, focus, "
-        "resolution)? Calibrate with them free to compare"
-        if held
-        else "its lens model (distortion terms) or its detections may not fit"
-    )
     return (
         f"; but its RMS, {rms:.3g} px, is {rms / float(np.median(others)):.1f} times the median "
         f"of the rig's other cameras ({float(np.median(others)):.3g} px): {cause}. Its standard "
