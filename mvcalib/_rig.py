@@ -92,8 +92,8 @@ QUICK_SIZE = 2**17
 # warm calls pay for the padded frames: 0.18 against 0.15 s (40 frames), 0.22 against 0.17 (50).
 MIN_FRAMES, FRAME_BITS = 32, 2
 # The results with a frame axis, and where it is (the rest have none).
-_FRAME_AXIS = dict(target_poses=0, frame_rms=0, alone_rms=1, residuals=1, observed=1, used=1,
-                   inliers=1, poor_pairs=1)  # fmt: skip
+_FRAME_AXIS = dict(target_poses=0, frame_rms=0, alone_rms=1, own_poses=1, residuals=1, observed=1,
+                   used=1, inliers=1, poor_pairs=1)  # fmt: skip
 # The worst camera, if its RMS is more than this many times the median of the rig's calibrated
 # cameras, is calibrated again against the rest of the rig (`calibrate_rig`). 16 cameras x 100
 # frames of a 6 x 8 board (key 10): camera 2's own frames put its focal length at 10,885 px in
@@ -126,6 +126,17 @@ _AGREE_SAMPLE = 128
 # A camera is judged (`_disagreeing`) on at least this many frames shared with the others (one
 # agrees with itself; two of a good camera agree with each other).
 _AGREE_MIN_FRAMES = 2
+# A camera's frames are out of step with the others' (`_step_spread`) where its own poses of the
+# target, taken one frame earlier or later along the frame axis, agree this many times better
+# with the other cameras' own poses (the spread of the pairs' relative translations), over at
+# least `_STEP_MIN_FRAMES` frames it shares with one of them. A user's trial: one camera of five
+# one frame late, a board moving 13 mm a frame (30 frames a second), was OK, 125 mm off against a
+# standard error of 2.3 mm, and pulled the others 45-110 mm. Its spread shifted by one frame is
+# 3.9-4.7 times smaller over 400 frames of a board moving 10-20 mm a frame, 19 times over 240
+# frames at 20 mm, but 1.3-1.5 times over 240 frames at 10-13 mm (not told: the poses of the
+# closed form are too noisy); the cameras in step agree 1-16 times worse shifted (those of a
+# recording whose frames are not consecutive, far worse). caliscope's recording: 0.4-1.2 times.
+_STEP_BETTER, _STEP_MIN_FRAMES = 2.0, 10
 
 
 # ------------------------------------------------------------------------------ the result
@@ -185,6 +196,13 @@ class RigCalibration(eqx.Module):
       or pose held (a given lens's distortion removed first), about the noise of the detections
       where the distortion is small; NaN where the pair's closed form failed. A camera whose
       frames fit several times worse in the rig says so (`messages`).
+    - `own_poses`: `(C, F)` each (camera, frame) pair's own pose of the target (target to
+      camera), from its points alone and its camera's own solve, before the cameras were
+      linked; NaN where the pair had none. `step_spread` `(C, 3)`: how far each camera's own
+      poses disagree with the other cameras' (the spread of the pairs' relative translations
+      over the target's distance) with its frames shifted by -1, 0 and +1 along the frame axis:
+      a camera whose frames are out of step by one agrees better shifted, and says so
+      (`messages`); NaN where it shares too few frames.
     - `residuals`: `(C, F, N, 2)` reprojected minus observed for every observation of a
       calibrated camera in a frame with a pose (`observed`, the skipped pairs' too), zero
       elsewhere; `used` `(C, F, N)` the observations that took part in the fit; `inliers` those
@@ -210,6 +228,7 @@ class RigCalibration(eqx.Module):
     camera_rms: Float[Array, " C"]
     frame_rms: Float[Array, " F"]
     alone_rms: Float[Array, "C F"]
+    own_poses: RigidTransform
     residuals: Float[Array, "C F N 2"]
     observed: Bool[Array, "C F N"]
     used: Bool[Array, "C F N"]
@@ -252,6 +271,10 @@ class RigCalibration(eqx.Module):
         return _validate.derived(rms, self.residuals, self.inliers)
 
     @property
+    def step_spread(self) -> np.ndarray:
+        return _step_spread(np.asarray(self.own_poses.R), np.asarray(self.own_poses.t))
+
+    @property
     def n_skipped(self) -> Int[Array, ""]:
         return _validate.derived(lambda xp, s: xp.sum(s), self.skipped)
 
@@ -261,10 +284,11 @@ class RigCalibration(eqx.Module):
         few points are fewer than a board's 4 or a 3-D target's 6 in every frame; a camera left
         out for poses that disagree with the rest's says so); for a
         calibrated camera, a note where the joint solve stopped before converging, where its
-        frames fit more than 3 times worse in the rig than each alone (`alone_rms`, medians over
-        its frames), else where its RMS is more than twice the median of the rig's other
-        calibrated cameras (`_misfit_note`; with a robust loss, over the observations it
-        believes), where a robust
+        frames seem one out of step with the other cameras' (`step_spread`), or another
+        camera's do, where its frames fit more than 3 times worse in the rig than each alone
+        (`alone_rms`, medians over its frames), else where its RMS is more than twice the median
+        of the rig's other calibrated cameras (`_misfit_note`; with a robust loss, over the
+        observations it believes), where a robust
         loss set aside more than a fifth of its observations, and (least squares) where some
         of its observations lie far beyond the rest (`_far_note`), or another camera's do
         (`_pulled_note`)."""
@@ -292,17 +316,27 @@ class RigCalibration(eqx.Module):
             "answer"
         )  # fmt: skip
         cameras = jax.tree_util.tree_map(np.asarray, self.cameras)
-        far = {} if robust else {c: _far_note(np.sqrt(square[c][used[c]])) for c in calibrated}
+        judged = inliers if robust else used
+        frames = {c: _in_rig_and_alone(square[c], judged[c], alone[c]) for c in calibrated}
+        # (far observations of a camera whose every frame fits worse in the rig are its model's
+        # misfit, not wrong detections: the note about it says so)
+        far = {} if robust else {
+            c: "" if _systematic(*frames[c]) else _far_note(np.sqrt(square[c][used[c]]))
+            for c in calibrated
+        }  # fmt: skip
         pulling = [int(c) for c, note in far.items() if note]
+        spread = self.step_spread
+        steps = {c: _step_note(spread[c]) for c in calibrated}
+        stepping = [int(c) for c, note in steps.items() if note]
         for c in calibrated:
             messages[c] += stopped
+            messages[c] += steps[c] or _stepping_note(stepping)
             if robust:
                 messages[c] += _set_aside_note(int(used[c].sum()), int(inliers[c].sum()))
             else:
                 messages[c] += far[c] or ("" if "pose" in held else _pulled_note(pulling))
-            frames = _in_rig_and_alone(square[c], (inliers if robust else used)[c], alone[c])
             others = rms[calibrated[calibrated != c]]
-            messages[c] += _misfit_note(float(rms[c]), others, held, frames)
+            messages[c] += _misfit_note(float(rms[c]), others, held, frames[c])
             if cameras.lens == "pinhole":
                 messages[c] += _fold_note(cameras[c])
         return messages
@@ -498,6 +532,47 @@ def _agreeing(both, turned, moved):
     degrees = jnp.maximum(_AGREE_DEGREES, _AGREE_SPREAD * median(turned))
     distance = jnp.maximum(_AGREE_DISTANCE, _AGREE_SPREAD * median(moved))
     return jnp.sum(both & (turned <= degrees) & (moved <= distance), -1).astype(turned.dtype)
+
+
+def _step_spread(R, t) -> np.ndarray:
+    """`(C, 3)`, in NumPy: for each camera, with its frames shifted by -1, 0 and +1 along the
+    frame axis (its frame `f + s` against the others' `f`), the spread of the relative
+    translations to every other camera over the frames they share (the median distance from the
+    pair's median, over the target's median distance), the median over the other cameras; from
+    the pairs' own poses of the target `R (C, F, 3, 3)`, `t (C, F, 3)` (NaN where none), at most
+    `_AGREE_SAMPLE` frames evenly spread. NaN where a camera shares fewer than
+    `_STEP_MIN_FRAMES` with every other. (The spread against the rig's solution instead, which
+    the camera out of step has pulled: 2-3 times where this gives 5-19.)"""
+    C, F = t.shape[:2]
+    out = np.full((C, 3), np.nan)
+    seen = np.isfinite(t).all(-1)
+    if F < 3 or not seen.any():
+        return out
+    distance = np.median(np.linalg.norm(t[seen], axis=-1))
+    f = np.arange(1, F - 1, max(1, (F - 2) // _AGREE_SAMPLE))
+    # camera d's centre in the target's frame, u = -Rd' td: the relative translation of d to c
+    # is tc + Rc u, one matrix product per frame over every pair (c, d)
+    u = -np.einsum("dsji,dsj->sid", R[:, f], t[:, f])  # (S, 3, C)
+    for k, s in enumerate((-1, 0, 1)):
+        Rc = np.swapaxes(R[:, f + s], 0, 1).reshape(len(f), C * 3, 3)
+        moved = (Rc @ u).reshape(len(f), C, 3, C) + np.swapaxes(t[:, f + s], 0, 1)[..., None]
+        tcd = np.moveaxis(moved, (1, 2, 3, 0), (0, 3, 1, 2))  # (C, C, S, 3)
+        off = tcd - _nan_median(tcd, 2)[:, :, None]
+        away = np.sqrt(np.sum(off * off, -1)) / distance
+        pair = _nan_median(away, 2)
+        pair[(np.isfinite(away).sum(-1) < _STEP_MIN_FRAMES) | np.eye(C, dtype=bool)] = np.nan
+        out[:, k] = _nan_median(pair, 1)
+    return out
+
+
+def _nan_median(x, axis: int):
+    """`np.nanmedian` along `axis` (NaN where every entry is), several times faster and without
+    its warnings: NaN sort last, and the middle of the finite entries is picked."""
+    x = np.sort(x, axis)
+    n = np.isfinite(x).sum(axis, keepdims=True)
+    pick = lambda k: np.take_along_axis(x, np.clip(k, 0, x.shape[axis] - 1), axis)  # noqa: E731
+    middle = 0.5 * (pick((n - 1) // 2) + pick(n // 2))
+    return np.squeeze(np.where(n > 0, middle, np.nan), axis)
 
 
 def _disagreeing(shared, agree):
@@ -703,7 +778,10 @@ def _initialise(
     failed = (pair_status == Status.DEGENERATE) | beyond if loss is None else jnp.any(mask, -1)
     pair = pair | (failed & usable[:, None] & frame_ok[None, :])
     initial = eqx.tree_at(lambda c: (c.R, c.t), own, (R, t))
-    return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance, alone
+    own_poses = RigidTransform(  # (`RigCalibration.step_spread`)
+        jnp.where(ok[..., None, None], Rp, jnp.nan), jnp.where(ok[..., None], tp, jnp.nan)
+    )
+    return initial, RigidTransform(Rf, tf), pair, frame_ok, status, distance, alone, own_poses
 
 
 def _own_fit(own, Rp, tp, solved, target, pixels, mask, max_relative_rms):
@@ -1269,7 +1347,7 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
     """The joint solve from `_start`'s rig, its uncertainty and report; the parameters the solve
     holds carry the derivatives of the `given` cameras' (`_held_through`)."""
     pose = jnp.asarray([i in POSE_INDICES for i in free], bool)
-    initial, frames, pair, frame_ok, status, distance, alone = start
+    initial, frames, pair, frame_ok, status, distance, alone, own_poses = start
     if given is not None:
         initial = _held_through(initial, given, free)
     C = pair.shape[0]
@@ -1331,6 +1409,7 @@ def _calibrate_rig(start, target, pixels, mask, observed, reference, max_relativ
         camera_rms=camera_rms,
         frame_rms=frame_rms,
         alone_rms=alone,
+        own_poses=own_poses,
         residuals=residuals,
         observed=observed,
         used=used,
@@ -1427,6 +1506,33 @@ def _far_note(lengths) -> str:
     )
 
 
+def _step_note(spread) -> str:
+    """A note where a camera's own poses agree `_STEP_BETTER` times better with the other
+    cameras' with its frames shifted by one (`RigCalibration.step_spread`, `(3,)`)."""
+    shifted = min(spread[0], spread[2])
+    if not spread[1] > _STEP_BETTER * shifted:
+        return ""
+    step = "f - 1" if spread[0] < spread[2] else "f + 1"
+    return (
+        f"; but its frames agree with the other cameras' {spread[1] / shifted:.1f} times better "
+        f"with its frame {step} taken as their frame f: are its frames one out of step (a frame "
+        "dropped or doubled, recordings started apart)? It and the cameras it pulls may be "
+        "further off than their standard errors say"
+    )
+
+
+def _stepping_note(stepping) -> str:
+    """The note of a camera whose frames are in step, where others' are not (`_step_note`)."""
+    if not stepping:
+        return ""
+    which = ", ".join(map(str, stepping))
+    return (
+        f"; but camera{'s' * (len(stepping) > 1)} {which} seem{'s' * (len(stepping) == 1)} one "
+        "frame out of step with the rest, which pulls every camera of the rig: this one may be "
+        "further off than its standard errors say"
+    )
+
+
 def _pulled_note(pulling) -> str:
     """A note for a camera without far observations of its own where other cameras have some
     (`_far_note`, least squares): one corner of 6,783 moved by 100 px in the reference camera
@@ -1473,6 +1579,12 @@ def _in_rig_and_alone(square, used, alone) -> tuple[float, float]:
     return float(np.median(in_rig)), float(np.median(alone[frames]))
 
 
+def _systematic(in_rig: float, alone: float) -> bool:
+    """Whether a camera's frames fit `_ALONE_TIMES` times worse in the rig than each alone (the
+    medians `_in_rig_and_alone`)."""
+    return in_rig > _ALONE_TIMES * max(alone, _ALONE_FLOOR)
+
+
 def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
     """A note where a camera's frames fit `_ALONE_TIMES` times worse in the rig than each alone
     (`frames`: the medians `_in_rig_and_alone`), else where it fits `_MISFIT` times worse than
@@ -1493,7 +1605,7 @@ def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
     else:
         cause = "its lens model (distortion terms) or its detections may not fit"
     in_rig, alone = frames
-    if in_rig > _ALONE_TIMES * max(alone, _ALONE_FLOOR):
+    if _systematic(in_rig, alone):
         return (
             f"; but its frames fit {in_rig / alone:.1f} times worse in the rig ({in_rig:.3g} px "
             f"in the median frame) than each alone ({alone:.3g} px, a homography or DLT a frame): "
