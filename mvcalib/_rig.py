@@ -346,7 +346,9 @@ class RigCalibration(eqx.Module):
 
     def table(self, names: Sequence[str] | None = None) -> str:
         """The result as text: a headline, and a row per camera (named by `names`, else by its
-        index) with its frames, points, RMS, the standard error of its centre and its status."""
+        index) with its frames, points, RMS, the standard error of its centre and its status (a
+        camera not calibrated: the frames where it posed the target alone, `own_poses`, and no
+        points; until 2026-12-06 zero of each, which hid the data a camera left out had)."""
         if not _validate.is_concrete(self.status) or np.ndim(self.status) != 1:
             return repr(self)  # (traced, or a batch of results from `jax.vmap`)
         status = np.asarray(self.status)
@@ -355,8 +357,11 @@ class RigCalibration(eqx.Module):
             raise ValueError(f"{len(names)} names for the {len(status)} cameras.")
         width = max(6, *map(len, names))
         used, inliers = np.asarray(self.used), np.asarray(self.inliers)
-        rms, n = np.asarray(self.camera_rms), used.sum(axis=(1, 2))
+        rms, n = np.asarray(self.camera_rms), used.sum(axis=(1, 2)).astype(object)
         frames = used.any(-1).sum(-1)
+        out = status != Status.OK
+        frames[out] = np.isfinite(np.asarray(self.own_poses.t)).all(-1).sum(-1)[out]
+        n[out] = "-"
         pos = np.asarray(self.position_std)
         # with a robust loss, the RMS of the observations it believes, beside the RMS of all
         robust = bool((used != inliers).any())

@@ -593,6 +593,9 @@ def test_one_mirrored_camera_is_poor_fit_and_the_rest_calibrated(capsys):
         assert status[2] == mc.Status.POOR_FIT, (loss, status)
         assert "disagree with the other cameras'" in result.messages()[2]
         assert (np.delete(status, 2) == mc.Status.OK).all(), (loss, status)
+        # the table shows the frames it posed alone (it showed 0 frames, 0 points)
+        row = next(r.split() for r in str(result).splitlines() if r.startswith("2 "))
+        assert row[:3] == ["2", str(int(mask_[2].any(-1).sum())), "-"], row
         good = np.arange(5) != 2
         off = np.linalg.norm(np.asarray(result.cameras.center)[good] - centres[good], axis=1)
         assert off.max() < 0.005, off  # metres; a baseline of ~2.5 m
