@@ -547,7 +547,7 @@ def _step_spread(R, t) -> np.ndarray:
     the pairs' own poses of the target `R (C, F, 3, 3)`, `t (C, F, 3)` (NaN where none), at most
     `_AGREE_SAMPLE` frames evenly spread. NaN where a camera shares fewer than
     `_STEP_MIN_FRAMES` with every other. (The spread against the rig's solution instead, which
-    the camera out of step has pulled: 2-3 times where this gives 5-19.)"""
+    the camera out of step has pulled: 2-3 times where this gives 4-19.)"""
     C, F = t.shape[:2]
     out = np.full((C, 3), np.nan)
     seen = np.isfinite(t).all(-1)
@@ -1611,8 +1611,9 @@ def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
         cause = "its lens model (distortion terms) or its detections may not fit"
     in_rig, alone = frames
     if _systematic(in_rig, alone):
+        times = in_rig / max(alone, _ALONE_FLOOR)
         return (
-            f"; but its frames fit {in_rig / alone:.1f} times worse in the rig ({in_rig:.3g} px "
+            f"; but its frames fit {times:.1f} times worse in the rig ({in_rig:.3g} px "
             f"in the median frame) than each alone ({alone:.3g} px, a homography or DLT a frame): "
             f"{cause}; or its frames are out of step with the other cameras'. Its standard "
             "errors take its model as right and understate how far off it may be"
