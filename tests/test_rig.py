@@ -502,7 +502,7 @@ def test_a_camera_one_frame_out_of_step_is_pointed_out():
     """A user's trial: one camera of five one frame late, a board moving 13 mm a frame: every
     camera OK and 'calibrated', the late one 125 mm off against a standard error of 2.3 mm and
     the others pulled 45-110 mm. At 20 mm a frame its own poses of the board agree with the
-    other cameras' 19 times better shifted by one frame (the others' 4-10 times worse shifted):
+    other cameras' 19 times better shifted by one frame (the others' 4-6 times worse shifted):
     it says so, and the others that it may have pulled them; in step, nothing is said. (At 13
     mm a frame, 3.9 times over 400 frames, but 1.3 over 240: not told.)"""
     cameras, target, pixels, mask = _moving_board(late=3, metres_a_second=0.6)
