@@ -1528,13 +1528,8 @@ def _step_note(spread) -> str:
 
 def _stepping_note(stepping) -> str:
     """The note of a camera whose frames are in step, where others' are not (`_step_note`)."""
-    if not stepping:
-        return ""
-    which = ", ".join(map(str, stepping))
-    return (
-        f"; but camera{'s' * (len(stepping) > 1)} {which} seem{'s' * (len(stepping) == 1)} one "
-        "frame out of step with the rest, which pulls every camera of the rig: this one may be "
-        "further off than its standard errors say"
+    return _pulled_by(
+        stepping, ("seems", "seem"), "one frame out of step with the rest, which pulls"
     )
 
 
@@ -1543,15 +1538,25 @@ def _pulled_note(pulling) -> str:
     (`_far_note`, least squares): one corner of 6,783 moved by 100 px in the reference camera
     of a user's trial put the other three 37-51 mm off (6 standard errors), each of them OK and
     'calibrated', 0.5-0.8 m at 600 px."""
-    if not pulling:
+    return _pulled_by(
+        pulling,
+        ("has", "have"),
+        "observations far beyond the rest (wrong detections), which least squares lets pull",
+        " (loss=mc.Huber(2.0); mvcalib calibrate-rig --huber 2)",
+    )
+
+
+def _pulled_by(cameras, verb: tuple[str, str], what: str, advice: str = "") -> str:
+    """'; but camera(s) `cameras` `verb` (singular, plural) `what` every camera of the rig: this
+    one may be further off ...', or nothing without `cameras`."""
+    if not cameras:
         return ""
-    which = f"camera {pulling[0]} has" if len(pulling) == 1 else (
-        f"cameras {', '.join(map(str, pulling))} have"
+    which = f"camera {cameras[0]} {verb[0]}" if len(cameras) == 1 else (
+        f"cameras {', '.join(map(str, cameras))} {verb[1]}"
     )  # fmt: skip
     return (
-        f"; but {which} observations far beyond the rest (wrong detections), which least "
-        "squares lets pull every camera of the rig: this one may be further off than its "
-        "standard errors say (loss=mc.Huber(2.0); mvcalib calibrate-rig --huber 2)"
+        f"; but {which} {what} every camera of the rig: this one may be further off than its "
+        f"standard errors say{advice}"
     )
 
 
