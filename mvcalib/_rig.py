@@ -1937,13 +1937,16 @@ def calibrate_rig(
         mask, observed = padded(mask, False), padded(observed, False)
         quick = C * frames * N <= QUICK_SIZE
         options = dict(free=free, loss=loss, max_steps=max_steps, quick=quick)
+        # (the reference camera as an array, not a constant of the programs: a rig calibrated
+        # from another reference, or `reference="target"` on another recording, compiles nothing)
+        index = np.int32(solve_reference)
         start = functools.partial(
-            _start, points, plane, image, mask, cameras, solve_reference, rcond, relative_rms,
+            _start, points, plane, image, mask, cameras, index, rcond, relative_rms,
             planar=planar, given=cameras is not None, **options,
         )  # fmt: skip
         joint = functools.partial(
             _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
-            reference=solve_reference, max_relative_rms=relative_rms, given=cameras, **options,
+            reference=index, max_relative_rms=relative_rms, given=cameras, **options,
         )  # fmt: skip
         if concrete:  # both programs compile on other threads, the second traced meanwhile
             if (start_like := _buckets.ahead(start)) is not None:

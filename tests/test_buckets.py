@@ -229,7 +229,8 @@ def test_ahead_is_only_a_hint():
 
 def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     """`calibrate_rig` pads a concrete rig's frames up to a bucket (32, 48, 64, 96, ...) with
-    frames nobody saw: recordings of 40 and 45 frames compile each of its programs once. The
+    frames nobody saw: recordings of 40 and 45 frames, and the second from another reference
+    camera, compile each of its programs once. The
     answer is the unpadded program's to its solves' tolerance (they stop at steps of 1e-5
     standard errors); measured: the same steps, centres 1.3e-6 standard errors apart."""
     import mvcalib._rig
@@ -239,8 +240,12 @@ def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     with caplog.at_level(logging.DEBUG), jax.log_compiles():
         short = mc.calibrate_rig(rig.target, rig.pixels[:, :40], rig.mask[:, :40])
         full = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+        # another reference camera is an argument of the same programs (it was a constant)
+        other = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, reference=2)
     for name in ("_start", "_calibrate_rig"):
         assert len(_compiled_on(caplog, name)) == 1, name
+    assert bool(other.ok.all()) and np.allclose(other.cameras.center[2], 0.0)
+    np.testing.assert_allclose(other.rms, full.rms, rtol=1e-7)
     N = rig.target.shape[0]
     assert short.target_poses.t.shape == (40, 3) and short.residuals.shape == (4, 40, N, 2)
     assert full.frame_rms.shape == (45,) and full.used.shape == (4, 45, N)
