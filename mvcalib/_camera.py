@@ -255,7 +255,9 @@ class Camera(eqx.Module):
         """Unit directions in camera coordinates of the rays through `pixels` `(..., N, 2)`: the
         inverse of `project` up to depth, for any angle the lens takes in (a fisheye's beyond 90
         degrees too: `z < 0`, which `undistort_points` cannot express). The lens is inverted by
-        Newton's method (as in `undistort_points`); differentiable.
+        Newton's method (as in `undistort_points`); differentiable. NaN for a pixel no ray of
+        the lens reaches: outside a fisheye's image circle, beyond the fold of a pinhole's
+        radial distortion (`undistort_points`).
 
         **Example:**
 
@@ -281,9 +283,11 @@ class Camera(eqx.Module):
             theta = _fisheye_inverse(theta_d, dist, self.dist, iterations)
             scale = jnp.where(positive, jnp.sin(theta) / jnp.where(positive, theta_d, 1.0), 1.0)
             return jnp.stack([xd * scale, yd * scale, jnp.cos(theta)], -1)
-        xy = _undistort(jnp.stack([xd, yd], -1), dist, iterations)
+        xy, valid = _undistorted(jnp.stack([xd, yd], -1), dist, iterations)
         ray = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], -1)
-        return ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
+        return jnp.where(
+            valid[..., None], ray / jnp.linalg.norm(ray, axis=-1, keepdims=True), jnp.nan
+        )
 
     def _in_image_circle(self, u, v) -> Bool[Array, "*batch N"]:
         """Whether the pixels `(u, v)` (each `(..., N)`) of a fisheye lie inside its image
@@ -671,15 +675,58 @@ def _solve_jacobian(x, y, dist, r):
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _undistort(target, dist, iterations):
     """The normalised `xy (..., 2)` with `distort(xy, dist) = target`: Newton's method from the
-    distorted point, a fixed number of steps. Its derivative is that of the exact inverse
+    distorted point, a fixed number of steps (a step to a non-finite point is not taken, so that
+    `xy` stays finite: `_undistorted` judges it). Its derivative is that of the exact inverse
     (implicit differentiation: `J dxy = dtarget - d distort / d dist`), not of the steps, so
     nested derivatives do not go through the loop."""
 
     def newton(xy, _):
         x, y = xy[..., 0], xy[..., 1]
-        return xy - _solve_jacobian(x, y, dist, distort(xy, dist) - target), None
+        step = xy - _solve_jacobian(x, y, dist, distort(xy, dist) - target)
+        return jnp.where(jnp.isfinite(step), step, xy), None
 
     return jax.lax.scan(newton, target, None, length=iterations)[0]
+
+
+def _undistorted(target, dist, iterations):
+    """`_undistort`, and where its answer is the lens's ray: `(xy, valid)`, `valid` False where
+    Newton's method found no root (a distorted point beyond the farthest the lens reaches) or
+    a root beyond the fold of the radial distortion, where `r (1 + k1 r^2 + k2 r^4 + k3 r^6)`
+    has stopped increasing (a second ray through the pixel, the mirror image of none). Both
+    came back as answers: an OpenCV user's trial, k1 -0.19 fitted on a 1280 x 720 camera, put
+    the corner pixel (2, 2) in the opposite corner (2554, 1441), which projects back to (2, 2)
+    exactly. `xy` is finite where the input is; `valid` carries no derivative."""
+    xy = _undistort(target, dist, iterations)
+    x, y = jax.lax.stop_gradient((xy[..., 0], xy[..., 1]))
+    d = jax.lax.stop_gradient(dist)
+    miss = jnp.stack(_distort(x, y, d), -1) - jax.lax.stop_gradient(target)
+    tolerance = jnp.sqrt(jnp.finfo(xy.dtype).eps) * (1.0 + jnp.abs(target))
+    solved = jnp.all(jnp.abs(miss) <= jax.lax.stop_gradient(tolerance), -1)
+    return xy, solved & _before_fold(x * x + y * y, d)
+
+
+def _before_fold(s, dist):
+    """Whether the radial distortion's slope `1 + 3 k1 s' + 5 k2 s'^2 + 7 k3 s'^3` (in `r`, with
+    `s' = r^2`) is positive on all of `[0, s]`: its least value there is at `s` or at a zero in
+    `(0, s)` of its derivative in `s'` (a quadratic), so that exactly these are tried."""
+    k1, k2, k3 = dist[..., 0], dist[..., 1], dist[..., 4]
+    slope = lambda s: 1.0 + s * (3.0 * k1 + s * (5.0 * k2 + s * 7.0 * k3))  # noqa: E731
+    # the zeros of 3 k1 + 10 k2 s + 21 k3 s^2 (one, where k3 is zero)
+    a, b, c = 21.0 * k3, 10.0 * k2, 3.0 * k1
+    disc = b * b - 4.0 * a * c
+    root = jnp.sqrt(jnp.maximum(disc, 0.0))
+    quadratic = a != 0
+    safe_a = jnp.where(quadratic, a, 1.0)
+    linear = jnp.where(b != 0, -c / jnp.where(b != 0, b, 1.0), -1.0)
+    stations = [
+        jnp.where(quadratic, (-b - root) / (2.0 * safe_a), linear),
+        jnp.where(quadratic, (-b + root) / (2.0 * safe_a), -1.0),
+    ]
+    positive = slope(s) > 0
+    for z in stations:
+        inside = (~quadratic | (disc >= 0)) & (z > 0) & (z < s)
+        positive &= ~inside | (slope(z) > 0)
+    return positive
 
 
 @_undistort.defjvp
@@ -700,7 +747,10 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     shapes); `pixels` is `(..., N, 2)` and broadcasts against the camera's batch shape.
     Differentiable: the derivative is that of the exact inverse (implicit, from the Jacobian at
     the answer), not of the iterations. A fisheye's rays at 90 degrees or more off axis have no
-    pinhole pixel: NaN (`Camera.rays` gives every ray).
+    pinhole pixel: NaN (`Camera.rays` gives every ray). So is a pixel beyond the fold of a
+    pinhole's radial distortion (where `r (1 + k1 r^2 + k2 r^4 + k3 r^6)` stops increasing:
+    its points are the mirror image of rays inside it, or of none), and one Newton's method
+    leaves unsolved; `cv2.undistortPoints` answers there with a wrong point.
 
     **Example:**
 
@@ -717,15 +767,19 @@ def undistort_points(camera: Camera, pixels, *, iterations: int = 20):
     px = _validate.floating("pixels", pixels, (None, 2))
     if camera.lens == "fisheye":
         ray = camera.rays(px, iterations=iterations)
-        front = ray[..., 2:] > 0  # beside or behind the image plane: no pinhole pixel
-        xy = jnp.where(front, ray[..., :2] / jnp.where(front, ray[..., 2:], 1.0), jnp.nan)
+        valid = ray[..., 2] > 0  # beside or behind the image plane: no pinhole pixel
+        xy = (
+            jnp.where(valid[..., None], ray[..., :2], 0.0)
+            / jnp.where(valid, ray[..., 2], 1.0)[..., None]
+        )
     else:
         target = jnp.stack(camera._distorted_normalised(px), -1)
         dist = jnp.broadcast_to(camera.dist[..., None, :], (*target.shape[:-1], 5))
-        xy = _undistort(target, dist, iterations)
+        xy, valid = _undistorted(target, dist, iterations)
+    # (NaN put in last: a NaN times the focal length made its derivative NaN for every pixel)
     u = camera.alpha_u[..., None] * xy[..., 0] + camera.skew[..., None] * xy[..., 1]
     v = camera.alpha_v[..., None] * xy[..., 1] + camera.v0[..., None]
-    return jnp.stack([u + camera.u0[..., None], v], -1)
+    return jnp.where(valid[..., None], jnp.stack([u + camera.u0[..., None], v], -1), jnp.nan)
 
 
 def image_to_pixel(image_xy, pixel_size, *, image_size=None, center=None, sx: float = 1.0):

@@ -366,6 +366,10 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
             pu,
             pv,
         )
+        # (a pixel beyond the fold of its lens's radial distortion has no ray either: hidden)
+        reached = jax.lax.stop_gradient(jnp.isfinite(ideal[0]))
+        m &= reached
+        ideal = [jnp.where(reached, p, c[:, None]) for p, c in zip(ideal, (cameras.u0, cameras.v0))]
         y = (ideal[1] - cameras.v0[:, None]) / cameras.alpha_v[:, None]
         x = (ideal[0] - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
 

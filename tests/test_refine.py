@@ -467,6 +467,57 @@ def test_undistort_points_matches_opencv():
         np.testing.assert_allclose(ours[i], pinhole.project(world), atol=1e-8)
 
 
+def test_pixels_beyond_the_fold_of_the_distortion_have_no_ray():
+    """An OpenCV user's trial: k1 -0.191, k2 6e-4 fitted on a 1280 x 720 camera (its radial
+    distortion folds back 723 px from the principal point, inside the image): the corner pixel
+    (2, 2) came back as (2554, 1441), the opposite corner, which projects to (2, 2) exactly;
+    (1278, 718) 0.99 px from a solution; on a lens that reaches 0.709 (normalised) a pixel at
+    0.9 came back as a point 368 px from it. No ray of the lens reaches them: NaN, in
+    `undistort_points` and `Camera.rays`, and a view of a point there is hidden by `triangulate`.
+    Inside the fold the answers are the exact inverse (ground truth) and OpenCV's."""
+    K = np.array([[818.0, 0.0, 646.0], [0.0, 818.0, 364.0], [0.0, 0.0, 1.0]])
+    D = np.array([-0.191, 6e-4, 0.0, 0.0, 0.0])
+    cam = mc.Camera.from_matrices(K, np.eye(3), np.zeros(3), dist=D)
+    # the fold: the slope 1 + 3 k1 s + 5 k2 s^2 of r (1 + k1 r^2 + k2 r^4) is zero at s = r^2
+    s = min(np.roots([5 * D[1], 3 * D[0], 1.0]).real)
+    reach = 818.0 * np.sqrt(s) * (1 + D[0] * s + D[1] * s**2)  # px from the principal point
+    assert 722 < reach < 724
+    beyond = np.array([[2.0, 2.0], [1278.0, 718.0], [646.0 + reach + 1.0, 364.0]])
+    assert np.isnan(np.asarray(mc.undistort_points(cam, beyond))).all()
+    assert np.isnan(np.asarray(cam.rays(beyond))).all()
+    # inside: rays up to 99 % of the fold's radius, their projections undistorted back
+    rng = np.random.default_rng(0)
+    angle, r = rng.uniform(0, 2 * np.pi, 500), np.sqrt(s) * rng.uniform(0, 0.99, 500)
+    xy = np.c_[r * np.cos(angle), r * np.sin(angle)]
+    observed = np.asarray(cam.project(np.c_[xy, np.ones(500)]))
+    ours = np.asarray(mc.undistort_points(cam, observed))
+    np.testing.assert_allclose(ours, 818.0 * xy + [646.0, 364.0], atol=1e-7)
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    inner = r < 0.8 * np.sqrt(s)  # (OpenCV's fixed-point iteration is slow near the fold)
+    ref = cv2.undistortPoints(observed[inner][:, None], K, D, P=K, criteria=criteria)[:, 0]
+    np.testing.assert_allclose(ours[inner], ref, atol=1e-6)
+    # the lens of the first trial: reaches 0.709 at r = 1.085, then falls
+    other = mc.Camera.from_matrices(
+        np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), np.eye(3), np.zeros(3),
+        dist=np.array([-0.45, 0.25, 0.0, 0.0, -0.1]),
+    )  # fmt: skip
+    out = np.asarray(mc.undistort_points(other, np.array([[860.0, 240.0], [700.0, 240.0]])))
+    assert np.isnan(out[0]).all() and np.isfinite(out[1]).all()
+    # a NaN answer leaves the derivatives of the others finite
+    both = np.array([[2.0, 2.0], [100.0, 100.0]])
+    grad = jax.grad(lambda c: mc.undistort_points(c, both)[1].sum())(cam)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(grad))
+    # a view beyond the fold is hidden: the point from the other views
+    pair = mc.Camera.stack([cam, eqx.tree_at(lambda c: c.t, cam, jnp.array([-0.3, 0.0, 0.0]))])
+    X = np.array([[0.1, 0.05, 1.5], [0.3, -0.2, 2.0], [-0.2, 0.1, 1.8]])
+    pixels = np.array(pair.project(X))
+    pixels[0, 0] = [2.0, 2.0]
+    out = mc.triangulate(pair, pixels)
+    assert np.asarray(out.views).tolist() == [1, 2, 2]
+    assert not bool(out.ok[0]) and bool(out.ok[1:].all())
+    np.testing.assert_allclose(out.points[1:], X[1:], atol=1e-9)
+
+
 # ------------------------------------------------------------------------------ the solver
 def test_secant_lm_matches_scipy_on_a_pytree_curve_fit():
     """A generic problem, `y` a dict: a decaying exponential plus offset, against MINPACK."""
