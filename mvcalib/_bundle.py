@@ -38,6 +38,7 @@ from ._refine import (
     _skew_model,
     _unpack,
     takes_model,
+    warn_held_coefficients,
 )
 from ._registration import RigidTransform
 from ._report import masked_rms
@@ -248,6 +249,7 @@ def refine_rig(
     # A call from Python with concrete arrays pads the rig to its bucket (`_padded`).
     bucketed = host and _buckets.applies(cameras, world, pixels, mask, transform)
     free = _free_parameters(distortion, fix, skew, cameras.lens)
+    warn_held_coefficients(cameras, distortion, fix)
     shared = bool(shared_intrinsics)
     cam_free = tuple(i for i in free if not (shared and i not in POSE_INDICES))
     shared_free = tuple(i for i in free if shared and i not in POSE_INDICES)

@@ -327,7 +327,9 @@ class Camera(eqx.Module):
     def stack(cls, cameras) -> Camera:
         """A rig from cameras (or rigs, of one lens), stacked along a new leading camera axis:
         say, two cameras calibrated one by one (`calibrate_planar`'s, OpenCV's) as the start of
-        a stereo pair's `calibrate_rig(..., cameras=rig, fix="intrinsics")`.
+        a stereo pair's `calibrate_rig(..., cameras=rig, fix=("intrinsics", "distortion"))`
+        (OpenCV's `stereoCalibrate(..., CALIB_FIX_INTRINSIC)`; `fix="intrinsics"` estimates
+        the distortion again).
 
         ```python
         >>> import numpy as np, mvcalib as mc

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -1073,6 +1074,39 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> Free:
     return Free((i for i, name in enumerate(names) if name not in fixed), tied=tied)
 
 
+def warn_held_coefficients(cameras: Camera, distortion, fix, *, stacklevel: int = 3) -> None:
+    """Warn where given cameras carry a distortion coefficient that the default `distortion`
+    (`DEFAULT_DISTORTION`: no k3) leaves out and `fix` does not name: it is held at its value
+    while the others are estimated, a lens model nobody asked for. An OpenCV user's trial:
+    cameras from `cv2.calibrateCamera` (k3 0.32 and -0.12) as the start of a stereo pair with
+    `fix="intrinsics"` (OpenCV's CALIB_FIX_INTRINSIC, they thought): k1 k2 p1 p2 moved, k3 did
+    not, and the baseline came out 0.38 mm (0.3 %) from `cv2.stereoCalibrate`'s, nothing said.
+    Concrete cameras only (inside a trace, nothing is said)."""
+    if distortion is not None or not _validate.is_concrete(cameras.dist):
+        return
+    lens = cameras.lens
+    named = set((fix,) if isinstance(fix, str) else tuple(fix))
+    if named & {"distortion"}:
+        return
+    coefficients = LENSES[lens]
+    left = [n for n in coefficients if n not in DEFAULT_DISTORTION[lens] and n not in named]
+    dist = np.asarray(cameras.dist).reshape(-1, len(coefficients))
+    for name in left:
+        values = dist[:, coefficients.index(name)]
+        which = np.flatnonzero(np.isfinite(values) & (values != 0))
+        if which.size:
+            listed = ", ".join(f"camera {c}: {values[c]:.3g}" for c in which[:4])
+            more = f" and {which.size - 4} more" if which.size > 4 else ""
+            warnings.warn(
+                f"the given cameras' {name} ({listed}{more}) is held at its value while "
+                f"{', '.join(DEFAULT_DISTORTION[lens])} are estimated: a mixed lens model. "
+                f"Estimate it too (distortion={(*DEFAULT_DISTORTION[lens], name)}), or hold "
+                "every coefficient as given (fix=('intrinsics', 'distortion') is OpenCV's "
+                "CALIB_FIX_INTRINSIC); fix=" + repr(name) + " keeps it held and says nothing.",
+                stacklevel=stacklevel,
+            )
+
+
 def _skew_model(cameras: Camera, skew: bool, fix, xp=jnp) -> Camera:
     """The seed of a zero-skew model (`skew=False`, the default: OpenCV's model) has zero skew:
     a seed with another value (the DLT's, noisy) has it set to zero, not held, unless `fix` names
@@ -1185,6 +1219,7 @@ def refine(
             "own pixels."
         )
     free = _free_parameters(distortion, fix, skew, cameras.lens)
+    warn_held_coefficients(cameras, distortion, fix)
     cameras = _skew_model(
         cameras, skew, fix, xp=np if bucketed or isinstance(cameras.skew, np.ndarray) else jnp
     )

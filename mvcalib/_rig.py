@@ -73,6 +73,7 @@ from ._refine import (
     parameter_names,
     reported_covariance,
     residual_variance,
+    warn_held_coefficients,
 )
 from ._registration import RigidTransform
 from ._rotation import exp_and_left_jacobian, nearest_rotation, rodrigues
@@ -1741,7 +1742,10 @@ def calibrate_rig(
       `mvcalib.calibrate_planar(..., lens="fisheye")`), whose closed-form poses use the points
       within 90 degrees of each camera's axis, and the joint solve all of them.
     - `fix`: parameters held at their starting values, by name or group as for `mvcalib.refine`
-      (`"intrinsics"`, `"distortion"`, `"focal"`, `"principal_point"`, ...); `"pose"` holds
+      (`"intrinsics"`, `"distortion"`, `"focal"`, `"principal_point"`, ...; OpenCV's
+      `CALIB_FIX_INTRINSIC` is `("intrinsics", "distortion")`: `"intrinsics"` is K's four, and
+      a given camera's coefficient that `distortion` leaves out, k3, is held with a warning
+      while the others are estimated); `"pose"` holds
       every camera's pose as given in `cameras`, in their world frame (`reference` is then
       unused), so that only the target's poses are fitted. `"aspect_ratio"` holds each camera's
       `alpha_u / alpha_v` at its starting ratio, the focal length estimated (OpenCV's
@@ -1882,6 +1886,8 @@ def calibrate_rig(
         unstarted &= (np.asarray(mask).sum(-1) >= MIN_PLANE_POINTS).any(-1)
     names = parameter_names(lens)
     free = _free_parameters(distortion, fix, skew, lens)
+    if given_cameras is not None:
+        warn_held_coefficients(given_cameras, distortion, fix)
     fixed = set(names) - {names[i] for i in free.reported}  # (a tied alpha_u is not held)
     fixes_intrinsics = bool(fixed & {"alpha_u", "alpha_v", "u0", "v0"})
     if cameras is None and fixes_intrinsics:

@@ -2,6 +2,7 @@
 (`mc.synthetic.board_rig`) and caliscope's real 4-camera recording."""
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -390,6 +391,29 @@ def test_a_stereo_pair_goes_into_opencvs_rectification_as_it_is():
     held = mc.calibrate_rig(target, pixels, mask, cameras=mc.Camera.stack(alone), fix="intrinsics")
     assert bool(held.ok.all())
     np.testing.assert_array_equal(np.asarray(held.cameras.K), np.asarray(mc.Camera.stack(alone).K))
+    # An OpenCV user's trial: cameras from `cv2.calibrateCamera` (five coefficients, k3 too)
+    # with `fix="intrinsics"`: k1 k2 p1 p2 moved and k3 was held, nothing said, 0.3 % of the
+    # baseline from `cv2.stereoCalibrate(..., CALIB_FIX_INTRINSIC)`. Now that warns, and
+    # holding the distortion too is OpenCV's solve.
+    full = mask[0].all(-1) & mask[1].all(-1)
+    views = [[p.astype(np.float32) for p in pixels[c][full]] for c in (0, 1)]
+    board = [target.astype(np.float32)] * int(full.sum())
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    opencv = [cv2.calibrateCamera(board, views[c], (1280, 800), None, None, criteria=criteria)[1:3]
+              for c in (0, 1)]  # fmt: skip
+    stereo = cv2.stereoCalibrate(board, *views, *opencv[0], *opencv[1], (1280, 800),
+                                 flags=cv2.CALIB_FIX_INTRINSIC, criteria=criteria)  # fmt: skip
+    start = mc.Camera.stack([mc.Camera.from_matrices(k, np.eye(3), np.zeros(3), dist=d.ravel())
+                             for k, d in opencv])  # fmt: skip
+    assert np.abs(np.asarray(start.dist)[:, 4]).min() > 1e-3  # (k3 is not zero)
+    with pytest.warns(UserWarning, match=r"k3 \(camera 0: .* is held at its value"):
+        mc.calibrate_rig(target, pixels, mask, cameras=start, fix="intrinsics")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        same = mc.calibrate_rig(target, pixels, mask & full[:, None], cameras=start,
+                                fix=("intrinsics", "distortion"))  # (OpenCV's frames)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(same.cameras.R[1]), stereo[5], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(same.cameras.t[1]), stereo[6].ravel(), atol=1e-6 * truth)
 
 
 def test_a_camera_that_never_sees_enough_of_the_board_is_told_so_in_a_rigs_words():
