@@ -160,6 +160,16 @@ class Camera(eqx.Module):
         if dist.shape[-1:] != (len(names),):
             other = [k for k, v in LENSES.items() if dist.shape[-1:] == (len(v),)]
             hint = f" (the coefficients of lens={other[0]!r}?)" if other else ""
+            if lens == "pinhole" and dist.shape[-1] == 4:
+                hint = (
+                    " (OpenCV's k1 k2 p1 p2? append a zero k3: `np.r_[dist, 0.0]`; cv2.fisheye's "
+                    "four are a `lens='fisheye'` camera's)"
+                )
+            elif lens == "pinhole" and dist.shape[-1] in (8, 12, 14):
+                hint = (
+                    f" (OpenCV's {dist.shape[-1]}-coefficient model? its first five, `dist[:5]`, "
+                    "are these; k4 and beyond have no counterpart here)"
+                )
             if column:
                 hint = f": OpenCV's ({dist.shape[0]}, 1) column? pass `dist.reshape(-1)`"
             raise ValueError(

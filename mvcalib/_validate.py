@@ -79,8 +79,14 @@ def floating(name: str, x, last_dims: tuple[int, ...] | None = None, *, xp=jnp):
             )
         try:
             x = np.asarray(x)
-        except ValueError as e:  # ragged nested lists
-            raise ValueError(f"`{name}` must be a rectangular array of numbers: {e}") from None
+        except ValueError:  # ragged nested lists
+            lengths = sorted({len(v) for v in x if hasattr(v, "__len__")})
+            raise ValueError(
+                f"`{name}` must be a rectangular array of numbers; got a list of arrays of "
+                f"lengths {lengths[:6]}{'...' if len(lengths) > 6 else ''}. Detections of some "
+                "of the points (OpenCV's per-view lists)? Give every view all of the target's "
+                "points in its order, NaN where one was not found, and `mask` False there."
+            ) from None
     if not hasattr(x, "dtype"):
         x = np.asarray(x)
     dtype = np.dtype(x.dtype)

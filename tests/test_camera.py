@@ -171,6 +171,14 @@ def test_opencv_shaped_rotation_and_translation_are_refused_not_broadcast():
         with pytest.raises(ValueError, match=said):
             mc.Camera(300.0, 300.0, 640.0, 480.0, np.eye(3), np.zeros(3), dist=np.zeros(shape),
                       lens="fisheye")  # fmt: skip
+    # an OpenCV user's trial: a pinhole's four (k1 k2 p1 p2, k3 zero) were pointed to the
+    # fisheye, another lens model; the rational model's eight said nothing
+    for n, said in (
+        (4, r"got \(4,\) \(OpenCV's k1 k2 p1 p2\? append a zero k3"),
+        (8, r"got \(8,\) \(OpenCV's 8-coefficient model\? its first five"),
+    ):
+        with pytest.raises(ValueError, match=said):
+            mc.Camera(300.0, 300.0, 640.0, 480.0, np.eye(3), np.zeros(3), dist=np.zeros(n))
 
 
 def test_distort_says_it_takes_a_pinholes_five_coefficients():

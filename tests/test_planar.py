@@ -597,6 +597,10 @@ def test_bad_input_is_refused_with_a_clear_message():
         mc.calibrate_planar(np.broadcast_to(WORLD, (5, 256, 3)), pixels, mask)
     with pytest.raises(ValueError, match="non-finite"):
         mc.calibrate_planar(WORLD, pixels)  # NaN where the points left the image
+    # OpenCV's per-view lists of the corners found: numpy's "inhomogeneous shape" message
+    ragged = [pixels[0], pixels[1][:40], pixels[2]]
+    with pytest.raises(ValueError, match=r"lengths \[40, 256\]\. .* NaN where one was not"):
+        mc.calibrate_planar(WORLD, ragged)
 
 
 def test_a_batch_of_calibrations_gives_each_its_own_intrinsics():
