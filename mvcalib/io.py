@@ -551,7 +551,10 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
     `distortion_model`'s (`equidistant` or `fisheye`: a fisheye; none, `plumb_bob` or
     `rational_polynomial`: a pinhole, whose coefficients beyond k3 must be zero). `R` may be a
     rotation vector (3 x 1, Rodrigues', as OpenCV's `rvecs`); `cameras` a flow (`[ a, b ]`) or
-    block (`- a` lines) sequence, as `cv2.FileStorage` writes it."""
+    block (`- a` lines) sequence, as `cv2.FileStorage` writes it. A camera with neither `R` nor
+    `T` (the intrinsics alone, as OpenCV's calibration samples save them) has a NaN pose: its
+    intrinsics start `calibrate_rig(..., cameras=..., fix=("intrinsics", "distortion"))`,
+    which takes the poses from the frames."""
     from ._rotation import rodrigues
 
     path = pathlib.Path(path)
@@ -574,6 +577,9 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
         names, maps = ["camera"], [tree]
     fields, lenses = [], []
     for name, node in zip(names, maps):
+        if isinstance(node, dict) and "R" not in node and "T" not in node:
+            # the intrinsics alone (OpenCV's calibration samples save no pose): the pose unknown
+            node = {**node, "R": np.full((3, 3), np.nan), "T": np.full(3, np.nan)}
         try:
             K, dist, R, T = (
                 node[k] for k in ("camera_matrix", "distortion_coefficients", "R", "T")

@@ -412,6 +412,22 @@ def test_opencv_yaml_as_filestorage_writes_it_and_what_opencv_cannot_hold(tmp_pa
         theirs = cv2.projectPoints(world, rvec, np.asarray(rig.t[i]), np.asarray(rig.K[i]),
                                    np.asarray(rig.dist[i]))[0][:, 0]  # fmt: skip
         np.testing.assert_allclose(np.asarray(back[i].project(world)), theirs, atol=1e-9)
+    # the intrinsics alone, as OpenCV's calibration samples save them: "lacks R, T" (an
+    # OpenCV user's trial); now K and the distortion as written, the pose unknown (NaN)
+    alone = tmp_path / "intrinsics.yml"
+    storage = cv2.FileStorage(str(alone), cv2.FILE_STORAGE_WRITE)
+    storage.write("camera_matrix", np.asarray(rig.K[0]))
+    storage.write("distortion_coefficients", np.asarray(rig.dist[0])[None])
+    storage.release()
+    camera, _ = mc.io.load_opencv(alone)
+    np.testing.assert_array_equal(np.asarray(camera.K), np.asarray(rig.K[0]))
+    np.testing.assert_array_equal(np.asarray(camera.dist), np.asarray(rig.dist[0]))
+    assert np.isnan(np.asarray(camera.R)).all() and np.isnan(np.asarray(camera.t)).all()
+    storage = cv2.FileStorage(str(alone), cv2.FILE_STORAGE_APPEND)
+    storage.write("R", np.eye(3))  # (a pose without its T is still refused)
+    storage.release()
+    with pytest.raises(ValueError, match="camera 'camera' lacks T"):
+        mc.io.load_opencv(alone)
     for kind in ("xml", "json"):
         other = tmp_path / f"cv.{kind}"
         storage = cv2.FileStorage(str(other), cv2.FILE_STORAGE_WRITE)

@@ -568,6 +568,20 @@ def test_alone_rms_is_the_noise_of_the_detections():
         assert abs(alone[c, f] / theirs - 1) < 0.01, (c, f, alone[c, f], theirs)
 
 
+def test_held_intrinsics_without_poses_start_the_rig_as_with_them():
+    """A file of the intrinsics alone (OpenCV's calibration samples save no pose;
+    `io.load_opencv` gives them a NaN pose): its cameras start a rig whose intrinsics are held
+    as the same cameras with their poses do, bit for bit (the poses come from the frames)."""
+    rig = _rig("board", n_cameras=4, n_frames=40)  # (the programs of the test above)
+    fix = ("intrinsics", "distortion")
+    nan = np.full((4, 3, 3), np.nan), np.full((4, 3), np.nan)
+    unknown = eqx.tree_at(lambda c: (c.R, c.t), rig.cameras, nan)
+    out = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=unknown, fix=fix)
+    known = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, cameras=rig.cameras, fix=fix)
+    assert bool(out.ok.all())
+    np.testing.assert_array_equal(np.asarray(out.cameras.center), np.asarray(known.cameras.center))
+
+
 def test_a_held_rig_that_does_not_fit_says_what_was_held():
     """A user's trial: a rig checked against a board printed 2 % too large (every parameter of
     the cameras held) was OK at 4 times the noise, and the notes blamed wrong detections and
