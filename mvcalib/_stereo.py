@@ -438,7 +438,16 @@ def _rectify(cameras, size, alpha, zero_disparity, fov_scale):
         f = 0.5 * jnp.where(vertical, cameras.alpha_u.sum(), cameras.alpha_v.sum())
         corners = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
         corners = last * jnp.asarray(corners, dtype)
-        c = last / 2 - _through(cameras, rotations, corners, f, jnp.zeros((2, 2), dtype)).mean(1)
+        seen = _through(cameras, rotations, corners, f, jnp.zeros((2, 2), dtype))
+        # (a corner beyond the fold of the lens's distortion has no ray: there, the lens's
+        # pinhole's, without distortion; OpenCV's steps stop short of a point there too)
+        pinholes = eqx.tree_at(lambda c: c.dist, cameras, jnp.zeros_like(cameras.dist))
+        seen = jnp.where(
+            jnp.isfinite(seen),
+            seen,
+            _through(pinholes, rotations, corners, f, jnp.zeros((2, 2), dtype)),
+        )
+        c = last / 2 - seen.mean(1)
     mean = c.mean(0)
     c = jnp.where(
         zero_disparity,

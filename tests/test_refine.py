@@ -516,6 +516,9 @@ def test_pixels_beyond_the_fold_of_the_distortion_have_no_ray():
     assert np.asarray(out.views).tolist() == [1, 2, 2]
     assert not bool(out.ok[0]) and bool(out.ok[1:].all())
     np.testing.assert_allclose(out.points[1:], X[1:], atol=1e-9)
+    # and rectified: the image's corners, beyond the fold, take the pinhole's rays
+    rect = mc.stereo_rectify(pair, (1280, 720))
+    assert np.isfinite(np.asarray(rect.P)).all()
 
 
 # ------------------------------------------------------------------------------ the solver
