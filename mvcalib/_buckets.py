@@ -188,8 +188,18 @@ _OPTIMISED = {"xla_cpu_use_fusion_emitters": False}
 
 # Compiling quickly, for small programs: LLVM without optimisation too. The compact DLT of 64
 # cameras of 64 points compiled in 0.55 s against 4.95 s fully optimised, and ran in the same
-# 2.3 ms.
-_QUICK = {**_OPTIMISED, "xla_backend_optimization_level": 0}
+# 2.3 ms. And in one piece: XLA splits a module into up to 32 for LLVM to compile in parallel,
+# which without optimisation costs more than it saves (2 cores, fresh processes, interleaved:
+# the first `calibrate` of 4 cameras 0.73-0.81 s against 0.79-0.88, with `refine=True`
+# 1.32-1.45 against 1.39-1.52, of 1024 cameras 1.68-1.83 against 1.77-1.98; test_rig.py 532
+# against 578 s; a program's code in 604 memory mappings against 790, `tests/conftest.py`).
+# An optimised build keeps the split: the DLT of 4096 cameras compiled in 4.0 s in one piece
+# against 2.9 s.
+_QUICK = {
+    **_OPTIMISED,
+    "xla_backend_optimization_level": 0,
+    "xla_cpu_parallel_codegen_split_count": 1,
+}
 
 
 def optimised_options() -> dict:
