@@ -197,7 +197,15 @@ class PlanarCalibration(eqx.Module):
             return repr(self)
         names = [Status(int(s)).name.lower() for s in np.asarray(self.status).reshape(-1)]
         table = format_table(self.report, status=names)
-        return table.replace("per camera", "per view").replace("camera", "  view", 1)
+        table = table.replace("per camera", "per view").replace("camera", "  view", 1)
+        # which lens model was fitted: OpenCV's calibrateCamera fits five coefficients by
+        # default, this two (an OpenCV user's trial compared them unawares)
+        held = [c for c in LENSES[self.camera.lens] if c not in self.parameter_names]
+        return (
+            f"{table}\none camera from {sum(n == 'ok' for n in names)} of {len(names)} views: RMS "
+            f"{float(self.rms):.4f} px; estimated {' '.join(self.parameter_names)}"
+            + (f"; held {' '.join(held)}" if held else "")
+        )
 
 
 # ------------------------------------------------------------------------------ kernels

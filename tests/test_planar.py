@@ -384,6 +384,13 @@ def test_agrees_with_opencv_calibrate_camera(noisy):
     np.testing.assert_allclose(np.asarray(out.camera.R), R, atol=1e-9)
     np.testing.assert_allclose(np.asarray(out.camera.t), np.stack(tvecs)[..., 0], atol=1e-7)
     assert abs(float(out.rms) - rms) < 1e-9
+    # the model matches OpenCV's flags here, not its default (five coefficients): the printed
+    # result says which were fitted (an OpenCV user's trial compared the two unawares)
+    n_views = len(mask)
+    assert str(out).endswith(
+        f"one camera from {n_views} of {n_views} views: RMS {float(out.rms):.4f} px; "
+        "estimated alpha_u alpha_v u0 v0 k1 k2; held p1 p2 k3"
+    )
 
 
 def test_fix_aspect_ratio_holds_the_closed_forms_ratio_as_opencv_holds_its_guesss(noisy):
