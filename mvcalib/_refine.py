@@ -1172,7 +1172,9 @@ def refine(
       and `"aspect_ratio"` (OpenCV's `CALIB_FIX_ASPECT_RATIO`): `alpha_u / alpha_v` held at the
       seed's ratio, the focal length estimated (`alpha_u` follows `alpha_v`; its standard error
       is the ratio times alpha_v's, and the two are fully correlated in `covariance`). With
-      either focal length held, both are.
+      either focal length held, both are. `fix=("intrinsics", "distortion")` fits the pose
+      alone, OpenCV's `solvePnP` (from a seed near it; a planar target's pose from a camera's
+      own frames: `calibrate_rig(..., cameras=..., fix=...)`'s `target_poses`).
     - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew
       (e.g. the DLT's small, noisy one) is set to zero. To hold a seed's non-zero skew instead,
       name it in `fix`.
