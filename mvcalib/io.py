@@ -596,6 +596,15 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
                 + " (camera_matrix 3x3, distortion_coefficients 1x5 or 1x4, R 3x3 or 3x1, T 3x1)."
             ) from None
         model = node.get("distortion_model", "plumb_bob")
+        if "distortion_model" not in node and np.size(dist) == 4 and np.any(dist):
+            # (OpenCV's files do not say which: a cv2.fisheye calibration saved by hand read
+            # as a pinhole projects wide angles wrongly; an OpenCV user's trial)
+            warnings.warn(
+                f"{path}: camera {name!r} has four distortion coefficients and no "
+                "distortion_model: read as a pinhole's k1 k2 p1 p2 (OpenCV's plumb_bob, k3 "
+                "zero); a cv2.fisheye calibration's four need `distortion_model: fisheye`.",
+                stacklevel=2,
+            )
         if model not in _OPENCV_LENS:
             raise ValueError(
                 f"{path}: camera {name!r} has distortion_model {model!r}; mvcalib reads "

@@ -423,6 +423,17 @@ def test_opencv_yaml_as_filestorage_writes_it_and_what_opencv_cannot_hold(tmp_pa
     np.testing.assert_array_equal(np.asarray(camera.K), np.asarray(rig.K[0]))
     np.testing.assert_array_equal(np.asarray(camera.dist), np.asarray(rig.dist[0]))
     assert np.isnan(np.asarray(camera.R)).all() and np.isnan(np.asarray(camera.t)).all()
+    # four coefficients and no distortion_model: a pinhole's k1 k2 p1 p2 or a cv2.fisheye's?
+    # Read as the pinhole's, as before, and said (a fisheye's read so projects wide angles wrong)
+    four = tmp_path / "four.yml"
+    storage = cv2.FileStorage(str(four), cv2.FILE_STORAGE_WRITE)
+    storage.write("camera_matrix", np.asarray(rig.K[0]))
+    storage.write("distortion_coefficients", np.asarray(rig.dist[0])[None, :4])
+    storage.release()
+    with pytest.warns(UserWarning, match="no distortion_model: read as a pinhole's k1 k2 p1 p2"):
+        camera, _ = mc.io.load_opencv(four)
+    assert camera.lens == "pinhole"
+    np.testing.assert_array_equal(np.asarray(camera.dist)[:4], np.asarray(rig.dist[0])[:4])
     storage = cv2.FileStorage(str(alone), cv2.FILE_STORAGE_APPEND)
     storage.write("R", np.eye(3))  # (a pose without its T is still refused)
     storage.release()
