@@ -709,11 +709,9 @@ def _undistorted(target, dist, iterations):
     the corner pixel (2, 2) in the opposite corner (2554, 1441), which projects back to (2, 2)
     exactly. `xy` is finite where the input is; `valid` carries no derivative."""
     xy = _undistort(target, dist, iterations)
-    x, y = jax.lax.stop_gradient((xy[..., 0], xy[..., 1]))
-    d = jax.lax.stop_gradient(dist)
-    miss = jnp.stack(_distort(x, y, d), -1) - jax.lax.stop_gradient(target)
-    tolerance = jnp.sqrt(jnp.finfo(xy.dtype).eps) * (1.0 + jnp.abs(target))
-    solved = jnp.all(jnp.abs(miss) <= jax.lax.stop_gradient(tolerance), -1)
+    x, y, d, t = jax.lax.stop_gradient((xy[..., 0], xy[..., 1], dist, target))
+    miss = jnp.stack(_distort(x, y, d), -1) - t
+    solved = jnp.all(jnp.abs(miss) <= jnp.sqrt(jnp.finfo(t.dtype).eps) * (1.0 + jnp.abs(t)), -1)
     return xy, solved & _before_fold(x * x + y * y, d)
 
 

@@ -1074,7 +1074,7 @@ def _free_parameters(distortion, fix, skew, lens: str = "pinhole") -> Free:
     return Free((i for i, name in enumerate(names) if name not in fixed), tied=tied)
 
 
-def warn_held_coefficients(cameras: Camera, distortion, fix, *, stacklevel: int = 3) -> None:
+def warn_held_coefficients(cameras: Camera, distortion, fix) -> None:
     """Warn where given cameras carry a distortion coefficient that the default `distortion`
     (`DEFAULT_DISTORTION`: no k3) leaves out and `fix` does not name: it is held at its value
     while the others are estimated, a lens model nobody asked for. An OpenCV user's trial:
@@ -1086,7 +1086,7 @@ def warn_held_coefficients(cameras: Camera, distortion, fix, *, stacklevel: int 
         return
     lens = cameras.lens
     named = set((fix,) if isinstance(fix, str) else tuple(fix))
-    if named & {"distortion"}:
+    if "distortion" in named:
         return
     coefficients = LENSES[lens]
     left = [n for n in coefficients if n not in DEFAULT_DISTORTION[lens] and n not in named]
@@ -1103,7 +1103,7 @@ def warn_held_coefficients(cameras: Camera, distortion, fix, *, stacklevel: int 
                 f"Estimate it too (distortion={(*DEFAULT_DISTORTION[lens], name)}), or hold "
                 "every coefficient as given (fix=('intrinsics', 'distortion') is OpenCV's "
                 "CALIB_FIX_INTRINSIC); fix=" + repr(name) + " keeps it held and says nothing.",
-                stacklevel=stacklevel,
+                stacklevel=3,  # (the caller of `refine`, `refine_rig`, `calibrate_rig`)
             )
 
 
