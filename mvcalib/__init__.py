@@ -36,6 +36,7 @@ _EXPORTS = {
     "_photos": ("read_image",),
     "_pipeline": ("Calibration", "CalibrationError", "calibrate"),
     "_planar": ("PlanarCalibration", "calibrate_planar"),
+    "_pnp": ("solve_pnp",),
     "_refine": ("Cauchy", "Huber", "Refinement", "SecantLM", "refine"),
     "_registration": ("RigidTransform", "procrustes", "procrustes_paper", "to_global"),
     "_report": ("ReprojectionReport", "reprojection_report"),
@@ -113,6 +114,7 @@ if typing.TYPE_CHECKING:
     from ._pipeline import calibrate as calibrate
     from ._planar import PlanarCalibration as PlanarCalibration
     from ._planar import calibrate_planar as calibrate_planar
+    from ._pnp import solve_pnp as solve_pnp
     from ._refine import Cauchy as Cauchy
     from ._refine import Huber as Huber
     from ._refine import Refinement as Refinement

@@ -539,8 +539,8 @@ def _result_messages() -> dict[int, str]:
         )
     messages[TOO_FEW_POINTS] = "too few visible points for the free parameters: not refined"
     messages[NOT_FINITE_SEED] = (
-        "the seed has a non-finite parameter (a camera `calibrate` could not solve is NaN): "
-        "not refined"
+        "the seed has a non-finite parameter (a camera `calibrate` could not solve is NaN; in "
+        "`solve_pnp`, a view whose points gave no closed-form pose): not refined"
     )
     return messages
 
@@ -1173,8 +1173,7 @@ def refine(
       seed's ratio, the focal length estimated (`alpha_u` follows `alpha_v`; its standard error
       is the ratio times alpha_v's, and the two are fully correlated in `covariance`). With
       either focal length held, both are. `fix=("intrinsics", "distortion")` fits the pose
-      alone, OpenCV's `solvePnP` (from a seed near it; a planar target's pose from a camera's
-      own frames: `calibrate_rig(..., cameras=..., fix=...)`'s `target_poses`).
+      alone from a seed near it (`mvcalib.solve_pnp` finds the seed too: OpenCV's `solvePnP`).
     - `skew`: estimate the skew; by default the model has none, as OpenCV's: the seed's skew
       (e.g. the DLT's small, noisy one) is set to zero. To hold a seed's non-zero skew instead,
       name it in `fix`.

@@ -32,7 +32,8 @@ _MESSAGES = {
     Status.TOO_FEW_POINTS: "fewer than 6 visible points: the 11 unknowns of P are not determined",
     Status.DEGENERATE: (
         "degenerate geometry: the visible world points are coplanar, collinear or repeated, so P "
-        "is not unique (use a non-coplanar target, or `mvcalib.calibrate_planar` for a flat one)"
+        "is not unique (use a non-coplanar target, or `mvcalib.calibrate_planar` for a flat one; "
+        "the pose alone of a calibrated camera: `mvcalib.solve_pnp`)"
     ),
     Status.NON_FINITE: "NaN or inf among the visible points",
     Status.POINTS_BEHIND: (
