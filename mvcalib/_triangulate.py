@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _sharding, _small, _validate
-from ._camera import Camera, undistort_points, unit_camera, usable_rig
+from ._camera import Camera, _distort, undistort_points, unit_camera, usable_rig
 
 __all__ = ["Triangulation", "triangulate", "reproject"]
 
@@ -336,6 +336,18 @@ def _triangulate_set(cameras, pixels, mask, min_angle, refine, max_steps, chunk)
     return _sharding.chunked_map(run, (pixels[..., 0], pixels[..., 1], mask), chunk, axis=1)
 
 
+def _undistorted_at_zero(cameras: Camera, u, v):
+    """`undistort_points` of the pixels `(C, N)` `u`, `v` where every coefficient is zero: the
+    pixels themselves (exactly: the distortion's terms are zero), as one step `p - (distort(p)
+    - p)` from them, whose derivative in the coefficients is undistortion's there."""
+    y = (v - cameras.v0[:, None]) / cameras.alpha_v[:, None]
+    x = (u - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
+    xd, yd = _distort(x, y, cameras.dist[:, None])
+    dx, dy = xd - x, yd - y
+    return u - cameras.alpha_u[:, None] * dx - cameras.skew[:, None] * dy, v - cameras.alpha_v[
+        :, None] * dy  # fmt: skip
+
+
 def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     # Hartley's normalisation for triangulation: undistorted pixels to normalised camera
     # coordinates (K^-1 x), and the world frame moved to the cameras' centroid and scaled by
@@ -356,13 +368,16 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
     if fisheye:  # unit rays, beyond 90 degrees too
         rays = jnp.moveaxis(cameras.rays(jnp.stack([pu, pv], -1)), -1, 0)
     else:
-        # Undistortion (Newton steps per pixel) is a third of the work; skip it for pinhole rigs.
+        # Undistortion (Newton steps per pixel) is a third of the work; skipped for rigs without
+        # distortion, where it is the identity written as one step from it, which keeps its
+        # derivative in the coefficients (the plain identity had none: gradient descent on the
+        # distortion through `triangulate`, from zero as usual, never moved; a JAX user's trial)
         ideal = jax.lax.cond(
             jnp.any(cameras.dist != 0),
             lambda u, v: tuple(
                 jnp.moveaxis(undistort_points(cameras, jnp.stack([u, v], -1)), -1, 0)
             ),
-            lambda u, v: (u, v),
+            functools.partial(_undistorted_at_zero, cameras),
             pu,
             pv,
         )

@@ -282,6 +282,14 @@ def test_triangulate_and_reproject_are_differentiable_beside_points_with_too_few
     assert np.all(np.asarray(g_px)[:, :2] == 0.0)
 
 
+def test_triangulate_is_differentiable_in_a_distortion_that_is_zero(scene):
+    # A rig without distortion skips undistortion; its derivative in the coefficients must stay
+    # (gradient descent on them from zero, as usual, never moved: a JAX user's trial)
+    cams, _, _, pixels, _ = scene
+    grad = check_derivatives(lambda a: mc.triangulate(*a).points, (cams, pixels[1]), reverse=True)
+    assert float(jnp.abs(grad[0].dist).max()) > 0
+
+
 @pytest.mark.parametrize("refine", [False, True])
 def test_diagnostics_and_refined_points_are_differentiable_beside_points_seen_once(scene, refine):
     # A point seen once had a stand-in position at its camera's centre: zero depth and a zero
