@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _buckets
+from . import _buckets, _validate
 from ._camera import Camera, flat_rig, undistort_points
 from ._rotation import hat, nearest_rotation, rodrigues
 
@@ -202,7 +202,7 @@ def undistortion_maps(
 
     ```
     """
-    width, height = _image_size(image_size)
+    width, height = _image_size(image_size, "undistortion_maps")
     v, u = np.mgrid[0:height, 0:width].astype(_dtype(new))
     grid = np.stack([u.ravel(), v.ravel()], -1)
     xy = np.asarray(_maps(flat_rig(camera), flat_rig(new), grid), np.float32)
@@ -237,9 +237,9 @@ def undistorted(
     """
     if not isinstance(camera, Camera):
         raise TypeError(f"`undistorted` takes a Camera; got {camera!r}.")
-    size = _image_size(image_size)
+    size = _image_size(image_size, "undistorted")
     dtype = _dtype(camera)
-    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=False)
+    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=False, function="undistorted")
     K = _new_K(flat_rig(camera), np.asarray(size, dtype), scaling, fov)
     K = K.reshape(*camera.batch_shape, 3, 3)
     return Camera(
@@ -280,9 +280,10 @@ def _new_K(cameras, size, alpha, fov_scale):
     )
 
 
-def _scalings(alpha, fov_scale, dtype, *, optional: bool):
+def _scalings(alpha, fov_scale, dtype, *, optional: bool, function: str):
     """`alpha` (in [0, 1]; where `optional`, None too: -1, OpenCV's "no scaling") and
-    `fov_scale` (positive) checked, as arrays of `dtype`."""
+    `fov_scale` (positive) of `mc.<function>` checked, as arrays of `dtype`."""
+    _validate.static_options(function, alpha=alpha, fov_scale=fov_scale)
     if not (optional and alpha is None):
         number = isinstance(alpha, (int, float, np.floating)) and not isinstance(alpha, bool)
         if not number or not 0.0 <= float(alpha) <= 1.0:
@@ -294,11 +295,14 @@ def _scalings(alpha, fov_scale, dtype, *, optional: bool):
     return np.asarray(scaling, dtype), np.asarray(fov_scale, dtype)
 
 
-def _image_size(image_size) -> tuple[int, int]:
+def _image_size(image_size, function: str) -> tuple[int, int]:
+    """`image_size` of `mc.<function>` checked: two positive Python ints."""
     try:
         size = tuple(image_size)
     except TypeError:
         size = ()
+    for n in size:
+        _validate.static_options(function, image_size=n)
     if len(size) != 2 or not all(
         isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n > 0 for n in size
     ):
@@ -379,11 +383,11 @@ def stereo_rectify(
     ```
     """
     cameras = _pair(cameras, "stereo_rectify")
-    size = _image_size(image_size)
+    size = _image_size(image_size, "stereo_rectify")
     if not isinstance(zero_disparity, (bool, np.bool_)):
         raise TypeError(f"`zero_disparity` is True or False; got {zero_disparity!r}.")
     dtype = _dtype(cameras)
-    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=True)
+    scaling, fov = _scalings(alpha, fov_scale, dtype, optional=True, function="stereo_rectify")
     out = _rectify(cameras, np.asarray(size, dtype), scaling, np.asarray(zero_disparity), fov)
     rect = StereoRectification(*out, image_size=size)
     P = rect.P

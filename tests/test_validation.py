@@ -215,6 +215,11 @@ def _misuses(rig):
          "`min_angle` of mc.triangulate is an option"),
         (lambda: jax.jit(mc.refine)(cameras, W, P, M, max_steps=20), TypeError,
          "`max_steps` of mc.refine is an option"),
+        (lambda: jax.jit(lambda a: mc.stereo_rectify(cameras, (1280, 720), alpha=a).P)(0.5),
+         TypeError, "`alpha` of mc.stereo_rectify is an option"),
+        (lambda: jax.jit(lambda w: mc.undistorted(cameras[0], (w, 720)).K)(1280), TypeError,
+         "`image_size` of mc.undistorted is an option"),
+        (lambda: mc.solve_pnp(board.cameras, T, BP), ValueError, r"pass `cameras\[:, None\]`"),
     ]  # fmt: skip
 
 
