@@ -1,5 +1,6 @@
-"""Saving and loading rigs (versioned JSON, OpenCV YAML, COLMAP, aniposelib and caliscope TOML),
-correspondences (CSV, JSON) and a rig's observations of a moving target (CSV, caliscope's xy.csv).
+"""Saving and loading rigs (versioned JSON, OpenCV YAML, ROS camera_info, COLMAP, Kalibr,
+aniposelib and caliscope TOML), correspondences (CSV, JSON) and a rig's observations of a moving
+target (CSV, caliscope's xy.csv).
 
 A rig file holds one entry per camera (name, intrinsics, `R`, `t`, distortion in OpenCV's order,
 and optionally its calibration status and reprojection RMS). Cameras that failed have `null`
@@ -34,7 +35,8 @@ __all__ = [
     "load_colmap", "write_atomic", "save_aniposelib", "load_aniposelib", "Correspondences",
     "save_correspondences", "load_correspondences", "Observations", "save_observations",
     "load_observations", "load_caliscope", "load_caliscope_cameras", "load_openptv_clicks",
-    "load_clicks", "load_openptv_calibration", "save_kalibr", "load_kalibr",
+    "load_clicks", "load_openptv_calibration", "save_kalibr", "load_kalibr", "save_ros",
+    "load_ros",
 ]  # fmt: skip
 
 FORMAT = "mvcalib.rig"
@@ -575,6 +577,8 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
         maps = [tree.get(n) for n in names]
     else:
         names, maps = ["camera"], [tree]
+    if isinstance(tree.get("camera_matrix"), dict):
+        raise ValueError(f"{path}: a ROS camera_info file; read it with mc.io.load_ros(path).")
     fields, lenses = [], []
     for name, node in zip(names, maps):
         if isinstance(node, dict) and "R" not in node and "T" not in node:
@@ -605,21 +609,10 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
                 "zero); a cv2.fisheye calibration's four need `distortion_model: fisheye`.",
                 stacklevel=2,
             )
-        if model not in _OPENCV_LENS:
-            raise ValueError(
-                f"{path}: camera {name!r} has distortion_model {model!r}; mvcalib reads "
-                f"{', '.join(_OPENCV_LENS)}."
-            )
-        lenses.append(_OPENCV_LENS[model])
+        lenses.append(_model_lens(path, name, model))
     lens = _one_lens(path, lenses, names)
-    n_dist = len(LENSES[lens])
-    for name, (_, dist, _, _) in zip(names, fields):
-        if len(dist) > n_dist and np.any(dist[n_dist:]):
-            raise ValueError(
-                f"{path}: camera {name!r} has {len(dist)} distortion coefficients; a {lens} "
-                f"lens has {n_dist} ({', '.join(LENSES[lens])}), and the others are not zero."
-            )
-    fields = [(K, np.pad(d, (0, max(0, n_dist - len(d))))[:n_dist], R, T) for K, d, R, T in fields]
+    dists = _coefficients(path, names, [f[1] for f in fields], lens)
+    fields = [(K, d, R, T) for (K, _, R, T), d in zip(fields, dists)]
     K, dist, R, T = (np.stack(f) for f in zip(*fields))
     _check_rotations(path, R, names)
     cameras = Camera.from_matrices(
@@ -628,6 +621,29 @@ def load_opencv(path) -> tuple[Camera, list[str]]:
     if "cameras" not in tree:
         cameras = cameras[0]
     return cameras, list(names)
+
+
+def _model_lens(path, name, model: str) -> str:
+    """The lens of a camera whose file names its `distortion_model` (ROS's tags)."""
+    if model not in _OPENCV_LENS:
+        raise ValueError(
+            f"{path}: camera {name!r} has distortion_model {model!r}; mvcalib reads "
+            f"{', '.join(_OPENCV_LENS)}."
+        )
+    return _OPENCV_LENS[model]
+
+
+def _coefficients(path, names, dists, lens: str) -> list[np.ndarray]:
+    """Each camera's distortion coefficients as `lens` takes them: fewer padded with zeros (an
+    OpenCV pinhole's four: k3 zero), more refused unless zero (a rational model's k4-k6)."""
+    n = len(LENSES[lens])
+    for name, dist in zip(names, dists):
+        if len(dist) > n and np.any(dist[n:]):
+            raise ValueError(
+                f"{path}: camera {name!r} has {len(dist)} distortion coefficients; a {lens} "
+                f"lens has {n} ({', '.join(LENSES[lens])}), and the others are not zero."
+            )
+    return [np.pad(d, (0, max(0, n - len(d))))[:n] for d in dists]
 
 
 # A rig file's R may be off a rotation by its rounding (a file written by hand with five or
@@ -649,10 +665,17 @@ def _check_rotations(path, R, names) -> None:
 
 
 def _parse_opencv_yaml(text: str, path) -> dict:
-    """The small YAML subset FileStorage writes: maps by indentation, `!!opencv-matrix` nodes
-    (whose `data` may run over several lines), scalars, and sequences of scalars on one line
-    (`[ a, b ]`) or one item a line (`- a`)."""
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith(("%", "---"))]
+    """The small YAML subset FileStorage (and ROS's camera_info) writes: maps by indentation,
+    `!!opencv-matrix` nodes, scalars, and sequences of scalars in brackets (`[ a, b ]`, over one
+    or several lines) or one item a line (`- a`)."""
+    lines = []
+    for ln in text.splitlines():
+        if not ln.strip() or ln.startswith(("%", "---")):
+            continue
+        if lines and lines[-1].count("[") > lines[-1].count("]"):  # a flow sequence goes on
+            lines[-1] += " " + ln.strip()
+        else:
+            lines.append(ln)
     root: dict = {}
     stack = [(-1, root)]
     matrix = None  # the open matrix: {"indent", "parent", "key", "fields"}
@@ -707,6 +730,160 @@ def _finish_matrix(matrix, path):
         matrix["parent"][key] = np.array(data).reshape(int(fields["rows"]), int(fields["cols"]))
     except (KeyError, ValueError) as error:
         raise ValueError(f"{path}: opencv-matrix {key!r} is malformed ({error}).") from None
+
+
+# ---------------------------------------------------------------------------- ROS camera_info
+# The matrices of a camera_info file and their shapes.
+_ROS_MATRICES = {"camera_matrix": (3, 3), "distortion_coefficients": (-1,),
+                 "rectification_matrix": (3, 3), "projection_matrix": (3, 4)}  # fmt: skip
+
+
+def _ros_matrix(name: str, a) -> list[str]:
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    values = ", ".join(repr(float(v)) for v in a.ravel())  # repr: shortest exact round trip
+    return [f"{name}:", f"  rows: {a.shape[0]}", f"  cols: {a.shape[1]}", f"  data: [{values}]"]
+
+
+def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0.0):
+    """Save one camera, or a stereo pair, as ROS camera_info YAML (the format of
+    `camera_calibration_parsers`, which `camera_info_manager` loads and ROS's calibrator
+    writes): one file per camera, atomically. Returns the paths written.
+
+    Each file holds `image_width`, `image_height`, `camera_name`, `camera_matrix` (K),
+    `distortion_model` (`plumb_bob` for a pinhole, k1 k2 p1 p2 k3; `equidistant` for a fisheye,
+    k1 k2 k3 k4), `distortion_coefficients`, `rectification_matrix` and `projection_matrix`. One
+    camera (`paths` one path): the rectification is the identity and the projection `[K' | 0]`,
+    K' the camera matrix of its undistorted image (`mvcalib.undistorted(camera, image_size,
+    alpha=alpha).K`, OpenCV's `getOptimalNewCameraMatrix`, as ROS's calibrator writes it). A
+    stereo pair (`cameras` a rig of two, `paths` two, the left camera first): `R` and `P` of
+    `mvcalib.stereo_rectify(cameras, image_size, alpha=alpha)` (OpenCV's R1, R2, P1, P2), so
+    that ROS's `stereo_image_proc` rectifies the images as mvcalib does and `load_ros` reads the
+    pair's relative pose back. A pinhole with skew is refused, as `save_opencv` refuses it.
+
+    **Example:**
+
+    ```python
+    >>> import tempfile, pathlib, numpy as np, mvcalib as mc
+    >>> R = np.stack([np.eye(3), np.asarray(mc.rodrigues(np.array([0.0, 0.1, 0.0])))])
+    >>> pair = mc.Camera([800.0, 810.0], [800.0, 810.0], [640.0, 630.0], [400.0, 410.0], R,
+    ...                  [[0.0, 0.0, 0.0], [-0.1, 0.0, 0.0]], dist=[[-0.1, 0.01, 0, 0, 0]] * 2)
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> paths = mc.io.save_ros([folder / "left.yaml", folder / "right.yaml"], pair, (1280, 800))
+    >>> back, names = mc.io.load_ros(*paths)  # the right camera in the left one's frame
+    >>> names, bool(np.allclose(back.center, pair.center)), bool(np.allclose(back.K, pair.K))
+    (['left', 'right'], True, True)
+
+    ```
+    """
+    from ._stereo import _image_size, stereo_rectify, undistorted
+
+    _check_cameras(cameras, "save_ros")
+    if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
+        raise ValueError(
+            "ROS's pinhole model (OpenCV's) has no skew; refine with skew=False (refine's "
+            "default) first."
+        )
+    size = _image_size(image_size, "io.save_ros")
+    paths = [pathlib.Path(paths)] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    shape = cameras.batch_shape
+    if not (len(paths) == 1 and shape in ((), (1,)) or len(paths) == 2 and shape == (2,)):
+        raise ValueError(
+            f"save_ros writes one camera to one path or a stereo pair to two; got {len(paths)} "
+            f"path(s) for cameras of batch shape {shape}."
+        )
+    names = _names(names, len(paths), "") if names is not None else [p.stem for p in paths]
+    rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float).reshape(
+        (len(paths),) + np.shape(a)[len(shape):]), cameras)  # fmt: skip
+    if len(paths) == 2:
+        rect = stereo_rectify(cameras, size, alpha=alpha)
+        R, P = np.asarray(rect.R), np.asarray(rect.P)
+    else:
+        K = np.asarray(undistorted(rig, size, alpha=alpha).K)
+        R, P = np.eye(3)[None], np.concatenate([K, np.zeros((1, 3, 1))], -1)
+    written = []
+    for i, path in enumerate(paths):
+        camera = rig[i]
+        lines = [
+            f"image_width: {size[0]}",
+            f"image_height: {size[1]}",
+            f"camera_name: {names[i]}",
+            *_ros_matrix("camera_matrix", camera.K),
+            f"distortion_model: {_OPENCV_MODEL[rig.lens]}",
+            *_ros_matrix("distortion_coefficients", np.asarray(camera.dist)[None]),
+            *_ros_matrix("rectification_matrix", R[i]),
+            *_ros_matrix("projection_matrix", P[i]),
+        ]
+        written.append(write_atomic(path, "\n".join(lines) + "\n"))
+    return written
+
+
+@_reads_rig
+def load_ros(*paths) -> tuple[Camera, list[str]]:
+    """Read ROS camera_info YAML files (`save_ros`'s, ROS's calibrator's, `camera_info_manager`'s):
+    `(cameras, names)`, the names from `camera_name` (else the file's name). One file gives one
+    camera (no camera axis) with a NaN pose: a camera_info holds no pose. Two files of a stereo
+    pair, the left first, give a rig of two in the left camera's frame, their relative pose from
+    the rectification (`rectification_matrix` R1, R2 and the right camera's
+    `projection_matrix`, whose fourth column holds f' times the baseline): `x_right = R2^T (R1
+    x_left + b)`. Any other files (or two that are not a rectified pair) give cameras with NaN
+    poses. The lens is `distortion_model`'s, as `load_opencv` reads it.
+
+    The intrinsics start `calibrate_rig(..., cameras=..., fix=("intrinsics", "distortion"))`,
+    which takes the poses from the frames where they are NaN."""
+    if not paths:
+        raise ValueError("load_ros takes the paths of one or more camera_info files.")
+    paths = [pathlib.Path(p) for p in paths]
+    names, fields, lenses, rectification = [], [], [], []
+    for path in paths:
+        try:
+            text = path.read_text(encoding=ENCODING)
+        except (OSError, UnicodeDecodeError) as error:
+            raise ValueError(f"{path}: cannot be read ({error})") from None
+        tree = _parse_opencv_yaml(text, path)
+        name = str(tree.get("camera_name") or path.stem)
+        matrices = {}
+        for key, shape in _ROS_MATRICES.items():
+            node = tree.get(key)
+            if node is None and key == "rectification_matrix":  # (optional in ROS's files)
+                matrices[key] = matrices["projection_matrix"] = None
+                break
+            try:
+                matrices[key] = np.array([float(v) for v in node["data"]]).reshape(shape)
+            except (TypeError, KeyError, ValueError):
+                raise ValueError(
+                    f"{path}: {key} is missing or malformed (a map of rows, cols and data, "
+                    f"{'x'.join(map(str, shape)) if len(shape) == 2 else 'a row'}): is this a "
+                    "ROS camera_info file?"
+                ) from None
+        names.append(name)
+        lenses.append(_model_lens(path, name, str(tree.get("distortion_model", "plumb_bob"))))
+        fields.append((matrices["camera_matrix"], matrices["distortion_coefficients"]))
+        rectification.append((matrices["rectification_matrix"], matrices["projection_matrix"]))
+    lens = _one_lens(paths[0], lenses, names)
+    dists = _coefficients(paths[0], names, [d for _, d in fields], lens)
+    K = np.stack([k for k, _ in fields])
+    R, t = _ros_poses(paths, rectification)
+    cameras = Camera.from_matrices(
+        jnp.asarray(K), jnp.asarray(R), jnp.asarray(t), jnp.asarray(np.stack(dists)), lens=lens
+    )
+    return (cameras[0] if len(paths) == 1 else cameras), names
+
+
+def _ros_poses(paths, rectification) -> tuple[np.ndarray, np.ndarray]:
+    """Each camera's pose `(R, t)`: a rectified stereo pair's in the left camera's frame, NaN
+    for anything else."""
+    n = len(paths)
+    R, t = np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan)
+    if n != 2 or any(r is None for r, _ in rectification):
+        return R, t
+    (R1, P1), (R2, P2) = rectification
+    b = np.array([P2[0, 3] / P2[0, 0], P2[1, 3] / P2[1, 1], 0.0])  # P2 = K' [I | b]
+    if not np.any(b) or np.any(P1[:, 3]) or not np.allclose(P1[:, :3], P2[:, :3]):
+        return R, t  # not a rectified pair: P1 = [K' | 0], P2 = [K' | K' b] with b != 0
+    _check_rotations(paths[0], np.stack([R1, R2]), ["left", "right"])
+    R[0], t[0] = np.eye(3), 0.0
+    R[1], t[1] = R2.T @ R1, R2.T @ b
+    return R, t
 
 
 # ---------------------------------------------------------------------------- COLMAP text

@@ -433,3 +433,123 @@ def test_load_kalibr_reads_kalibr_s_block_style_and_imu_chains(tmp_path):
     path.write_text("cameras: [a]\n")
     with pytest.raises(ValueError, match="not a Kalibr camera chain"):
         mc.io.load_kalibr(path)
+
+
+# ---------------------------------------------------------------------------- ROS camera_info
+ROS_FILE = """image_width: 1280
+image_height: 800
+camera_name: narrow_stereo
+camera_matrix:
+    rows: 3
+    cols: 3
+    data: [415.12614, 0., 665.52373,
+           0., 410.49986, 460.14929,
+           0., 0., 1.               ]
+distortion_model: plumb_bob
+distortion_coefficients:
+    rows: 1
+    cols: 5
+    data: [-0.017697, -0.007270, 0.005751, -0.000139, 0.]
+rectification_matrix:
+    rows: 3
+    cols: 3
+    data: [1., 0., 0.,
+           0., 1., 0.,
+           0., 0., 1.]
+projection_matrix:
+    rows: 3
+    cols: 4
+    data: [415.12614, 0., 665.52373, 0.,
+           0., 410.27547, 459.89776, 0.,
+           0., 0., 1., 0.]
+"""
+
+
+def test_load_ros_reads_a_camera_info_file_as_ros_writes_it(tmp_path):
+    """Matrices over several lines, as ROS's calibrator writes them; no pose in the file."""
+    path = tmp_path / "ost.yaml"
+    path.write_text(ROS_FILE)
+    camera, names = mc.io.load_ros(path)
+    assert names == ["narrow_stereo"] and camera.batch_shape == () and camera.lens == "pinhole"
+    _equal(camera.K, [[415.12614, 0, 665.52373], [0, 410.49986, 460.14929], [0, 0, 1]])
+    _equal(camera.dist, [-0.017697, -0.007270, 0.005751, -0.000139, 0.0])
+    assert bool(jnp.isnan(camera.t).all())
+    with pytest.raises(ValueError, match=r"ROS camera_info file; read it with mc.io.load_ros"):
+        mc.io.load_opencv(path)
+    path.write_text(ROS_FILE.replace("camera_matrix:", "camera_matrx:"))
+    with pytest.raises(ValueError, match="camera_matrix is missing or malformed.*camera_info"):
+        mc.io.load_ros(path)
+
+
+def _ros_pair(lens="pinhole"):
+    R = np.stack([np.eye(3), np.asarray(mc.rodrigues(np.array([0.02, 0.08, -0.01])))])
+    dist = [[-0.12, 0.03, 1e-3, -5e-4, 0.0]] if lens == "pinhole" else [[0.05, -0.01, 2e-3, 0.0]]
+    return mc.Camera([800.0, 820.0], [805.0, 818.0], [640.0, 628.0], [400.0, 410.0], R,
+                     [[0.0, 0.0, 0.0], [-0.12, 0.004, 0.01]], dist=dist * 2, lens=lens)  # fmt: skip
+
+
+def _ros_matrices(path):
+    import yaml
+
+    info = yaml.safe_load(path.read_text())
+    return {k: np.reshape(v["data"], (v["rows"], v["cols"])) for k, v in info.items()
+            if isinstance(v, dict)}  # fmt: skip
+
+
+def test_save_ros_writes_opencvs_new_camera_matrix_and_reads_back(tmp_path):
+    import cv2
+
+    camera = _ros_pair()[0]
+    (path,) = mc.io.save_ros(tmp_path / "cam.yaml", camera, (1280, 800))
+    written = _ros_matrices(path)  # read with PyYAML, not with load_ros
+    K, D = np.asarray(camera.K), np.asarray(camera.dist)
+    new, _ = cv2.getOptimalNewCameraMatrix(K, D, (1280, 800), 0.0)
+    # (OpenCV's five undistortion steps stop short with k1 -0.12: 1.4e-3 px, docs/reliability)
+    np.testing.assert_allclose(written["projection_matrix"][:, :3], new, atol=3e-3)  # px
+    _equal(written["rectification_matrix"], np.eye(3))
+    back, names = mc.io.load_ros(path)
+    assert names == ["cam"]
+    _equal(back.K, camera.K)
+    _equal(back.dist, camera.dist)
+
+
+@pytest.mark.parametrize("lens", ["pinhole", "fisheye"])
+def test_a_stereo_pair_goes_through_ros_with_its_rectification_and_pose(tmp_path, lens):
+    import cv2
+
+    pair = _ros_pair(lens)
+    paths = mc.io.save_ros([tmp_path / "left.yaml", tmp_path / "right.yaml"], pair, (1280, 800))
+    left, right = (_ros_matrices(p) for p in paths)
+    # R1, R2, P1, P2 as OpenCV's rectification of the pair (alpha 0, ROS's calibrator's)
+    K1, K2, D1, D2 = (np.asarray(x) for x in (pair.K[0], pair.K[1], pair.dist[0], pair.dist[1]))
+    R, T = np.asarray(pair.R[1]), np.asarray(pair.t[1])[:, None]  # camera 0 is the world
+    rectify = cv2.stereoRectify if lens == "pinhole" else cv2.fisheye.stereoRectify
+    flags = cv2.CALIB_ZERO_DISPARITY
+    if lens == "pinhole":
+        R1, R2, P1, P2 = rectify(K1, D1, K2, D2, (1280, 800), R, T, flags=flags, alpha=0.0)[:4]
+        np.testing.assert_allclose(left["rectification_matrix"], R1, atol=1e-8)
+        np.testing.assert_allclose(right["rectification_matrix"], R2, atol=1e-8)
+        # (to 4e-6 of f': OpenCV undistorts the image's border in five steps that stop short)
+        np.testing.assert_allclose(right["projection_matrix"], P2, rtol=1e-5, atol=1e-9)
+        np.testing.assert_allclose(left["projection_matrix"], P1, rtol=1e-5, atol=1e-9)
+    back, names = mc.io.load_ros(*paths)
+    assert names == ["left", "right"] and back.lens == lens
+    _equal(back.K, pair.K)
+    _equal(back.dist, pair.dist)
+    np.testing.assert_allclose(back.R, pair.R, atol=1e-12)
+    np.testing.assert_allclose(back.t, pair.t, atol=1e-12)
+    # files that are not a rectified pair: no pose
+    single = mc.io.save_ros(tmp_path / "one.yaml", pair[0], (1280, 800))
+    assert bool(jnp.isnan(mc.io.load_ros(paths[0], *single)[0].R).all())
+
+
+def test_save_ros_refuses_what_ros_cannot_hold(tmp_path):
+    pair = _ros_pair()
+    skewed = eqx.tree_at(lambda c: c.skew, pair, jnp.array([0.5, 0.0]))
+    with pytest.raises(ValueError, match="no skew"):
+        mc.io.save_ros([tmp_path / "a.yaml", tmp_path / "b.yaml"], skewed, (1280, 800))
+    with pytest.raises(ValueError, match=r"one camera to one path or a stereo pair to two"):
+        mc.io.save_ros(tmp_path / "a.yaml", pair, (1280, 800))
+    with pytest.raises(ValueError, match="image_size"):
+        mc.io.save_ros(tmp_path / "a.yaml", pair[0], 1280)
+    assert not list(tmp_path.iterdir())
