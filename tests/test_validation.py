@@ -220,6 +220,8 @@ def _misuses(rig):
         (lambda: jax.jit(lambda w: mc.undistorted(cameras[0], (w, 720)).K)(1280), TypeError,
          "`image_size` of mc.undistorted is an option"),
         (lambda: mc.solve_pnp(board.cameras, T, BP), ValueError, r"pass `cameras\[:, None\]`"),
+        (lambda: jax.jit(lambda n: mc.undistort_points(cameras, P, iterations=n))(20), TypeError,
+         "`iterations` of mc.undistort_points is an option"),
     ]  # fmt: skip
 
 
