@@ -1145,7 +1145,7 @@ def _calibrate_rig(args) -> int:
         "distortion": [n for n in result.parameter_names if n in LENSES[result.cameras.lens]],
         "reference": reference,
         "origin_frame": origin,
-        "loss": None if loss is None else {loss_name: loss.scale},
+        "loss": None if loss is None else {loss_name: float(loss.scale)},
         "rms": number(result.rms),
         "rms_observed": number(result.rms_observed),
         "rms_inliers": number(result.rms_inliers),

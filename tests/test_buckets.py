@@ -66,6 +66,25 @@ def test_eager_lens_inverses_compile_once(caplog, lens):
         np.testing.assert_allclose(later[2], traced, rtol=1e-12, atol=1e-9)
 
 
+def test_a_loss_of_another_scale_compiles_nothing(caplog):
+    """A robust loss's scale is data: an annealing loop over scales (a JAX user's trial) reuses
+    the program, and each scale acts (the points set aside change with it)."""
+    world, pixels, mask = _rig(1, 3, 19, noise=0.5)
+    pixels[:, 0] += 6.0  # one wild point in every camera
+    seed = mc.calibrate(world, pixels, mask).cameras
+    refine = lambda loss: mc.refine(seed, world, pixels, mask, distortion=(), loss=loss)  # noqa: E731
+    refine(mc.Huber(1.0))
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        caplog.clear()
+        out = {s: refine(mc.Huber(s)) for s in (0.25, 2.0, 20.0)}
+    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
+    inliers = {s: int(o.inliers.sum()) for s, o in out.items()}
+    assert inliers[0.25] < inliers[2.0] < inliers[20.0] == int(np.sum(mask))
+    assert repr(mc.Huber(2.0)) == "Huber(2)" and float(mc.Cauchy(0.5).scale) == 0.5
+    with pytest.raises(ValueError, match="positive"):
+        mc.Cauchy(0.0)
+
+
 # The script of issue 39: rigs of 3 to 33 cameras, 15 to 40 points.
 RIGS = ((3, 15), (5, 22), (7, 40), (12, 19), (20, 31), (33, 27))
 
