@@ -516,7 +516,8 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
         raise ValueError(
             "OpenCV's pinhole model has no skew (cv2.projectPoints ignores K[0,1]: the file "
-            "would put points skew * y off); refine with skew=False (refine's default) first."
+            "would put points skew * y off); calibrate with skew=False (`calibrate` estimates "
+            "the DLT's skew by default) or refine with skew=False (refine's default) first."
         )
     if cameras.batch_shape == () and names is not None:  # a named camera: a rig of one
         cameras = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], cameras)
@@ -780,8 +781,9 @@ def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0
     _check_cameras(cameras, "save_ros")
     if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
         raise ValueError(
-            "ROS's pinhole model (OpenCV's) has no skew; refine with skew=False (refine's "
-            "default) first."
+            "ROS's pinhole model (OpenCV's) has no skew; calibrate with skew=False (`calibrate` "
+            "estimates the DLT's skew by default) or refine with skew=False (refine's default) "
+            "first."
         )
     size = _image_size(image_size, "io.save_ros")
     paths = [pathlib.Path(paths)] if isinstance(paths, (str, os.PathLike)) else list(paths)
