@@ -763,6 +763,25 @@ def _plane_frame(world: np.ndarray, used: np.ndarray, dtype) -> RigidTransform:
     return RigidTransform(*jax.device_put((A.astype(dtype), (-A @ c).astype(dtype))))
 
 
+def _traced_plane_frame(world, used) -> RigidTransform:
+    """`_plane_frame` of a traced `world` (unchecked): the identity where the used points lie in
+    z = 0, else the frame of their best-fitting plane. It carries no derivative: the closed form
+    drops the points' z in it, and only their moves within the plane mean anything to a planar
+    method. (Taken as the identity, a tilted board's closed form was silently off under the
+    user's `jax.jit`: focal length 796.7 against 800 px with exact pixels, a JAX user's trial.)"""
+    X, w = jax.lax.stop_gradient(world), used.astype(world.dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    c = (w @ X) / n
+    d = (X - c) * w[:, None]
+    s, v = jnp.linalg.eigh(d.T @ d)  # ascending: v[:, 2] the widest direction, v[:, 0] the normal
+    A = jnp.stack([v[:, 2], v[:, 1], jnp.cross(v[:, 2], v[:, 1])])
+    tol = 1e-6 if X.dtype == jnp.float64 else 1e-4
+    extent = jnp.sqrt(s[2] / n)  # RMS spread along the widest direction
+    flat = jnp.all(jnp.where(used, jnp.abs(X[:, 2]), 0.0) <= tol * extent)
+    R = jnp.where(flat, jnp.eye(3, dtype=X.dtype), A)
+    return RigidTransform(R, jnp.where(flat, 0.0, -A @ c))
+
+
 def _check_views(pixels, mask, skew: bool):
     V = pixels.shape[0]
     need = 3 if skew else 2
@@ -836,8 +855,7 @@ def calibrate_planar(
 
     - `world`: the target's points, shared by every view: `(N, 2)` plane coordinates, or
       `(N, 3)` points on one plane (any plane; the poses are returned in this frame; a
-      `world` traced by `jax.jit` must lie in `z = 0`, as the plane is found from concrete
-      values).
+      `world` traced by `jax.jit` is not checked for being planar).
     - `pixels`: `(V, N, 2)` observations, `(x = column, y = row)`.
     - `mask`: `(V, N)` visibility; hidden points (even NaN) have no influence.
     - `skew`: estimate the skew `K[0, 1]` (Zhang's gamma) — then at least 3 views are needed;
@@ -942,7 +960,7 @@ def calibrate_planar(
         used = np.asarray(mask).any(0)
         plane = _plane_frame(np.asarray(world), used, dtype)
     else:
-        plane = RigidTransform.identity(dtype)  # traced: the user's z = 0 plane is assumed
+        plane = _traced_plane_frame(world, jnp.any(mask, 0))
     rcond = float(jnp.finfo(dtype).eps) ** 0.5 if rcond is None else float(rcond)
     distortion = DEFAULT_DISTORTION[lens] if distortion is None else distortion
     free_shared, free_pose, tied = _free_masks(distortion, fix, skew, dtype, lens)  # checks names
