@@ -300,7 +300,7 @@ class Camera(eqx.Module):
 
         ```
         """
-        return _eagerly(Camera._rays, "rays", self, pixels, iterations)
+        return _eagerly(Camera._rays, "Camera.rays", self, pixels, iterations)
 
     def _rays(self, px, iterations: int):
         """`rays` of validated pixels."""
