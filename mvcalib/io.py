@@ -468,6 +468,17 @@ def _opencv_camera(camera: Camera, indent: str, image_size) -> list[str]:
     return lines
 
 
+def _refuse_pinhole_skew(cameras: Camera, model: str) -> None:
+    """`ValueError` for pinhole cameras with skew, which OpenCV's model (ROS's too) has not:
+    `cv2.projectPoints` ignores K[0,1], so the file would put points `skew * y` off."""
+    if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
+        raise ValueError(
+            f"{model} has no skew (cv2.projectPoints ignores K[0,1]: the file would put points "
+            "skew * y off); calibrate with skew=False (`calibrate` estimates the DLT's skew by "
+            "default) or refine with skew=False (refine's default) first."
+        )
+
+
 def opencv_name(name: str) -> str:
     """`name` as OpenCV's FileStorage keys allow (letters, digits and '_', not starting with a
     digit), as the command line writes camera names to OpenCV's YAML.
@@ -513,12 +524,7 @@ def save_opencv(path, cameras: Camera, *, names=None, image_size=None) -> pathli
     """
     lines = ["%YAML:1.0", "---"]
     _check_cameras(cameras, "save_opencv")
-    if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
-        raise ValueError(
-            "OpenCV's pinhole model has no skew (cv2.projectPoints ignores K[0,1]: the file "
-            "would put points skew * y off); calibrate with skew=False (`calibrate` estimates "
-            "the DLT's skew by default) or refine with skew=False (refine's default) first."
-        )
+    _refuse_pinhole_skew(cameras, "OpenCV's pinhole model")
     if cameras.batch_shape == () and names is not None:  # a named camera: a rig of one
         cameras = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], cameras)
     if cameras.batch_shape == ():
@@ -779,12 +785,7 @@ def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0
     from ._stereo import _image_size, stereo_rectify, undistorted
 
     _check_cameras(cameras, "save_ros")
-    if cameras.lens == "pinhole" and np.any(np.asarray(cameras.skew) != 0):
-        raise ValueError(
-            "ROS's pinhole model (OpenCV's) has no skew; calibrate with skew=False (`calibrate` "
-            "estimates the DLT's skew by default) or refine with skew=False (refine's default) "
-            "first."
-        )
+    _refuse_pinhole_skew(cameras, "ROS's pinhole model (OpenCV's)")
     size = _image_size(image_size, "io.save_ros")
     paths = [pathlib.Path(paths)] if isinstance(paths, (str, os.PathLike)) else list(paths)
     shape = cameras.batch_shape
