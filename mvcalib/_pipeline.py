@@ -14,7 +14,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _status, _validate
 from ._camera import Camera, placeholder
-from ._report import ReprojectionReport, compute_report, format_table, residual_rms
+from ._report import ReprojectionReport, compute_report, format_table, index_names, residual_rms
 from ._status import Status
 
 if TYPE_CHECKING:
@@ -114,7 +114,7 @@ def mirror_note(
     mirrored = np.asarray(result.mirrored).reshape(-1) & np.asarray(result.ok).reshape(-1)
     if not mirrored.any():
         return ""
-    names = [str(n) for n in (range(len(mirrored)) if names is None else names)]
+    names = [str(n) for n in (index_names(np.shape(result.mirrored)) if names is None else names)]
     which = ", ".join(names[i] for i in np.flatnonzero(mirrored))
     cameras = f"cameras {which} see" if mirrored.sum() > 1 else f"camera {which} sees"
     return (

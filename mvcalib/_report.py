@@ -95,17 +95,23 @@ def residual_report(residuals, mask) -> ReprojectionReport:
     )
 
 
+def index_names(batch: tuple[int, ...]) -> list[str]:
+    """Each camera's index in a batch of shape `batch`, as text: `"3"` along one axis, `"1, 2"`
+    along two (a calibration under `vmap`: numbered 0 to 5, a (2, 3) batch lost its shape)."""
+    return [", ".join(map(str, i)) for i in np.ndindex(*(batch or (1,)))]
+
+
 def format_table(report: ReprojectionReport, status=None, names=None) -> str:
     """Table I as text, one row per camera (flattened over batch axes), each named by `names`
-    or by its index along the cameras' axis (from 0, as `report.rms[i]`); with `status`, a
-    word per camera after its row."""
+    or by its index (`index_names`: as `report.rms[i]`, or `report.rms[i, j]` for a batch of
+    two axes); with `status`, a word per camera after its row."""
     if not _validate.is_concrete(report.rms):
         return repr(report)
     cols = [
         np.atleast_1d(np.asarray(getattr(report, k))).reshape(-1)
         for k in ("mean_x", "mean_y", "rms", "max", "n_points")
     ]
-    names = [str(n) for n in (range(len(cols[0])) if names is None else names)]
+    names = [str(n) for n in (index_names(np.shape(report.rms)) if names is None else names)]
     width = max(6, *map(len, names))
     header = (
         f"{'camera':<{width}} {'mean err x':>11} {'mean err y':>11} {'RMS':>9} {'max':>9} "

@@ -51,6 +51,12 @@ def test_bad_cameras_get_a_status_and_the_rest_are_untouched():
     assert "too_few_points" in text and "points_behind" in text
     # the mirrored camera is named below the table (pixels given as (y, x) look the same)
     assert "mirrored: camera 4 sees a mirror image of the world" in text
+    # a batch of two axes keeps its indices (numbered 0 to 5, a (2, 3) batch lost its shape)
+    batch = mc.calibrate(world.reshape(2, 3, -1, 3), pixels.reshape(2, 3, -1, 2),
+                         mask.reshape(2, 3, -1))  # fmt: skip
+    rows = [line.split()[:2] for line in str(batch).splitlines()[2:8]]
+    assert rows == [[f"{i},", str(j)] for i in range(2) for j in range(3)]
+    assert "mirrored: camera 1, 1 sees a mirror image" in str(batch)
 
 
 def test_strict_and_raise_if_failed_name_the_failed_cameras():
