@@ -16,10 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _buckets, _validate
+from . import _buckets, _dlt, _validate
 from ._camera import Camera, undistort_points
-from ._planar import _plane_frame
-from ._refine import Cauchy, Huber, Refinement, refine
+from ._planar import MIN_PLANE_POINTS, _plane_frame
+from ._refine import POOR_FIT, TOO_FEW_POINTS, Cauchy, Huber, Refinement, refine
+from ._report import residual_rms
 from ._rig import _is_planar, _pair_poses_object, _pair_poses_planar
 from ._status import Status
 
@@ -35,6 +36,7 @@ def solve_pnp(
     *,
     loss: Huber | Cauchy | None = None,
     rcond: float | None = None,
+    max_relative_rms: float = _dlt.DEFAULT_MAX_RELATIVE_RMS,
     max_steps: int = 100,
 ) -> Refinement:
     """The pose of a known target in every view of calibrated cameras (OpenCV's `solvePnP`).
@@ -56,20 +58,24 @@ def solve_pnp(
     - `pixels`, `mask`: where each view saw each point, and which points it saw (default: the
       finite pixels).
     - `loss`: `None` for least squares, or `Huber(scale)` / `Cauchy(scale)` in pixels, to bound
-      the influence of wrong detections. (A detection wrong by more than about 5 % of the
-      view's spread of pixels spoils the closed form, and the view is flagged: leave it out in
-      `mask`, or refine a pose from elsewhere with `refine(..., loss=...)`.)
+      the influence of wrong detections. (A 3-D target's detection wrong by more than about 5 %
+      of the view's spread of pixels spoils its closed form, the DLT, and the view is flagged:
+      leave it out in `mask`, or refine a pose from elsewhere with `refine(..., loss=...)`.)
     - `rcond`: relative cut-off of the closed form's smallest singular values (default
       `sqrt(eps)`).
+    - `max_relative_rms`: a view whose pose fits its points (those the loss keeps) with an RMS
+      above this fraction of their spread is flagged, as `calibrate` flags a camera.
     - `max_steps`: iteration limit per view; reaching it is reported, not raised.
 
     **Returns:** a `Refinement` with one entry per view: `cameras` placed so that the target's
     frame is the world's (`cameras.R`, `cameras.t` are OpenCV's `rvec` as a matrix and `tvec`:
     `x_cam = R X + t`), the reprojection RMS of the closed form (`rms_before`) and of the result
     (`rms_after`), and the standard errors of the pose (`std("rx")` in radians, `std("tx")` in
-    the target's units). A view whose closed form fails (fewer points than it needs, points
-    collinear, a DLT that does not fit) has `result == -2` and NaN pose; too few points for the
-    pose at all, `-1`. Derivatives with respect to `pixels`, `target` and the cameras'
+    the target's units). Each view is checked, and a failed one has a NaN pose: `result == -1`
+    with fewer points than the closed form needs (4 of a plane, 6 of a 3-D target), `-2` where
+    it fails (points collinear, a DLT that does not fit them), `-3` where the pose fits its
+    points poorly (`max_relative_rms`: a wrong correspondence); `messages()` says which.
+    Derivatives with respect to `pixels`, `target` and the cameras'
     parameters are those of the optimum (implicit).
 
     **Example:**
@@ -124,34 +130,64 @@ def solve_pnp(
             )
     plane = _plane_frame(target, np.ones(len(target), bool), world.dtype) if planar else None
     rcond = float(np.sqrt(np.finfo(world.dtype).eps)) if rcond is None else float(rcond)
-    seed = _seed(cameras, world, plane, pixels, mask, views, rcond, concrete)
-    if concrete and not views and not np.all(np.isfinite(np.asarray(seed.t))):
+    options = dict(
+        loss=loss,
+        max_steps=max_steps,
+        max_relative_rms=_dlt.check_relative_rms(max_relative_rms),
+        minimum=MIN_PLANE_POINTS if planar else _validate.MIN_POINTS,
+    )
+    n = pixels.shape[-2]
+    if concrete:  # one flat axis of views, padded to its bucket: other numbers reuse the programs
+        (world, pixels, mask), _ = _buckets.correspondences(world, pixels, mask)
+        cameras = jax.tree_util.tree_map(
+            lambda x: _buckets.pad(x, 0, len(pixels)), _flat(cameras, views, np)
+        )
+    else:  # (in the caller's program)
+        pixels = jnp.broadcast_to(pixels, views + (n, 2)).reshape(-1, n, 2)
+        mask = jnp.broadcast_to(mask, views + (n,)).reshape(-1, n)
+        cameras = _flat(cameras, views, jnp)
+    seed = _closed_form(cameras, world, plane, pixels, mask, planar=planar, rcond=rcond,
+                        quick=True)  # fmt: skip
+    if concrete and not views and not np.all(np.isfinite(np.asarray(seed.t[0]))):
         raise ValueError(
-            f"the view's {int(np.sum(mask))} points give no closed-form pose: too few (a "
+            f"the view's {int(np.sum(mask[0]))} points give no closed-form pose: too few (a "
             f"{'plane needs 4' if planar else '3-D target needs 6'}), collinear, or a DLT that "
             "does not fit them (wrong correspondences?)."
         )
-    return refine(
-        seed, world, pixels, mask, distortion=(), fix=_HELD, loss=loss, max_steps=max_steps
-    )
+    out = _solved(seed, world, pixels, mask, **options)
+    if concrete:
+        out = _buckets.cut(out, views)
+        return _buckets.cut_points(out, _point_arrays, n, len(views))
+    return jax.tree_util.tree_map(lambda x: x.reshape(views + x.shape[1:]), out)
 
 
-def _seed(cameras, world, plane, pixels, mask, views, rcond, concrete) -> Camera:
-    """The cameras broadcast to `views`, each placed by its view's closed form (NaN where it
-    fails); concrete arrays go to the compiled program flattened and padded to their bucket."""
-    options = dict(planar=plane is not None, rcond=rcond)
-    if not concrete:  # one flat axis of views, in the caller's program
-        n = pixels.shape[-2]
-        pixels = jnp.broadcast_to(pixels, views + (n, 2)).reshape(-1, n, 2)
-        mask = jnp.broadcast_to(mask, views + (n,)).reshape(-1, n)
-        seed = _closed_form(_flat(cameras, views, jnp), world, plane, pixels, mask, **options)
-        return jax.tree_util.tree_map(lambda x: x.reshape(views + x.shape[1:]), seed)
-    (world, pixels, mask), _ = _buckets.correspondences(world, pixels, mask)
+def _point_arrays(out: Refinement) -> tuple:
+    return out.inliers, out.report.residuals, out.report.mask
+
+
+def _solved(seed, world, pixels, mask, *, loss, max_steps, max_relative_rms, minimum):
+    """`refine` of the seeded poses (`(V,)` cameras, `pixels (V, N, 2)`), each checked: too few
+    points for the closed form, -1; a pose that fits the points it kept poorly, -3 (NaN)."""
+    out = refine(seed, world, pixels, mask, distortion=(), fix=_HELD, loss=loss,
+                 max_steps=max_steps)  # fmt: skip
+    return _checked(out, pixels, mask, max_relative_rms, minimum, quick=True)
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _checked(out: Refinement, pixels, mask, max_relative_rms, minimum) -> Refinement:
+    """`out` with each view checked as `calibrate` checks a camera (`_dlt.poor_fit`, over the
+    points a robust loss keeps), and flagged with a NaN pose where it fails."""
+    kept = residual_rms(out.report.residuals, out.inliers)
+    sort = _dlt.compact(*mask.shape)
+    poor = _dlt.poor_fit(kept, pixels, mask, max_relative_rms, sort)
+    result = jnp.where((out.result == 0) & poor, POOR_FIT, out.result)
+    result = jnp.where(jnp.sum(mask, -1) < minimum, TOO_FEW_POINTS, result).astype(jnp.int32)
+    flagged = result != out.result
     cameras = jax.tree_util.tree_map(
-        lambda x: _buckets.pad(x, 0, len(pixels)), _flat(cameras, views, np)
+        lambda x: jnp.where(flagged.reshape(flagged.shape + (1,) * (x.ndim - 1)), jnp.nan, x),
+        out.cameras,
     )
-    seed = _closed_form(cameras, world, plane, pixels, mask, **options, quick=True)
-    return _buckets.cut(seed, views)
+    return eqx.tree_at(lambda r: (r.cameras, r.result), out, (cameras, result))
 
 
 def _flat(cameras: Camera, views: tuple[int, ...], xp) -> Camera:

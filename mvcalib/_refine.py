@@ -503,8 +503,9 @@ class Refinement(eqx.Module):
     - `iterations`: Levenberg–Marquardt steps per camera.
     - `result`: optimistix's outcome per camera, as the integer index of an `optx.RESULTS` member
       (0 = successful), or -1 where the camera has too few visible points for the free
-      parameters, -2 where its seed is not finite (e.g. a camera `calibrate` could not solve);
-      its camera is then NaN. `ok` is `result == 0`, `messages()` spells them out.
+      parameters, -2 where its seed is not finite (e.g. a camera `calibrate` could not solve),
+      -3 where `solve_pnp` found the pose fitting poorly; its camera is then NaN. `ok` is
+      `result == 0`, `messages()` spells them out.
     - `inliers`: `(..., N)` visible points whose final residual is within 3 `loss.scale` (all
       visible points without a robust loss).
     - `covariance`: `(..., P, P)` covariance of the parameters named in `parameter_names` (the
@@ -543,6 +544,7 @@ class Refinement(eqx.Module):
 
 TOO_FEW_POINTS = -1
 NOT_FINITE_SEED = -2
+POOR_FIT = -3  # (`solve_pnp`'s check of its poses)
 
 
 def _result_messages() -> dict[int, str]:
@@ -556,7 +558,15 @@ def _result_messages() -> dict[int, str]:
             "(e.g. one view of a plane with free intrinsics: large standard errors tell; hold "
             "some with `fix=`, or add views), else raise `max_steps`"
         )
-    messages[TOO_FEW_POINTS] = "too few visible points for the free parameters: not refined"
+    messages[TOO_FEW_POINTS] = (
+        "too few visible points for the free parameters (`solve_pnp`: for the closed form, 4 of "
+        "a plane, 6 of a 3-D target): not refined"
+    )
+    messages[POOR_FIT] = (
+        "the pose fits its points (those a robust loss keeps) with an RMS above "
+        "`max_relative_rms` of their spread: a wrong correspondence (a robust loss sets it "
+        "aside), or the wrong camera"
+    )
     messages[NOT_FINITE_SEED] = (
         "the seed has a non-finite parameter (a camera `calibrate` could not solve is NaN; in "
         "`solve_pnp`, a view whose points gave no closed-form pose): not refined"
