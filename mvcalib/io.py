@@ -674,10 +674,13 @@ def _check_rotations(path, R, names) -> None:
 def _parse_opencv_yaml(text: str, path) -> dict:
     """The small YAML subset FileStorage (and ROS's camera_info) writes: maps by indentation,
     `!!opencv-matrix` nodes, scalars, and sequences of scalars in brackets (`[ a, b ]`, over one
-    or several lines) or one item a line (`- a`)."""
+    or several lines) or one item a line (`- a`, indented or not); comments (`# ...`) dropped."""
     lines = []
     for ln in text.splitlines():
-        if not ln.strip() or ln.startswith(("%", "---")):
+        if ln.startswith(("%", "---")):
+            continue
+        ln = _uncommented(ln)
+        if not ln.strip():
             continue
         if lines and lines[-1].count("[") > lines[-1].count("]"):  # a flow sequence goes on
             lines[-1] += " " + ln.strip()
@@ -701,7 +704,8 @@ def _parse_opencv_yaml(text: str, path) -> dict:
             matrix = None
         item = line.strip() == "-" or line.strip().startswith("- ")
         while indent < stack[-1][0] or (
-            indent == stack[-1][0] and not (item and stack[-1][1] in ({}, []))
+            indent == stack[-1][0]
+            and not (item and (isinstance(stack[-1][1], list) or stack[-1][1] == {}))
         ):  # (a sequence's items may be indented as its key is)
             stack.pop()
         parent = stack[-1][1]
@@ -712,7 +716,7 @@ def _parse_opencv_yaml(text: str, path) -> dict:
                 outer, name = stack[-2][1], next(k for k, v in stack[-2][1].items() if v is parent)
                 outer[name] = parent = []
                 stack[-1] = (stack[-1][0], parent)
-            parent.append(line.strip()[1:].strip().strip('"'))
+            parent.append(line.strip()[1:].strip().strip("\"'"))
             continue
         key, _, value = line.strip().partition(":")
         value = value.strip()
@@ -722,12 +726,27 @@ def _parse_opencv_yaml(text: str, path) -> dict:
             parent[key] = {}
             stack.append((indent, parent[key]))
         elif value.startswith("["):
-            parent[key] = [v.strip().strip('"') for v in value.strip("[] ").split(",") if v.strip()]
+            items = value.strip("[] ").split(",")
+            parent[key] = [v.strip().strip("\"'") for v in items if v.strip()]
         else:
-            parent[key] = value.strip('"')
+            parent[key] = value.strip("\"'")
     if matrix is not None:
         _finish_matrix(matrix, path)
     return root
+
+
+def _uncommented(line: str) -> str:
+    """`line` without its YAML comment: from a `#` outside quotes that starts the line or follows
+    a blank (`distortion_model: plumb_bob  # 5 coefficients` was read as that whole model)."""
+    quote = None
+    for i, ch in enumerate(line):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#" and (i == 0 or line[i - 1] in " \t"):
+            return line[:i].rstrip()
+    return line
 
 
 def _finish_matrix(matrix, path):
@@ -737,6 +756,24 @@ def _finish_matrix(matrix, path):
         matrix["parent"][key] = np.array(data).reshape(int(fields["rows"]), int(fields["cols"]))
     except (KeyError, ValueError) as error:
         raise ValueError(f"{path}: opencv-matrix {key!r} is malformed ({error}).") from None
+
+
+def _in_metres(rig: Camera, metres_per_unit, writer: str, whose: str, far: float) -> Camera:
+    """`rig` (NumPy, one camera axis) with its translations in metres, for a file whose units
+    are metres; a warning where its cameras then stand more than `far` metres apart (a rig in
+    millimetres, unscaled: a 2 m rig 2 km wide, a 12 cm baseline 120 m)."""
+    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise ValueError(f"`metres_per_unit` is positive; got {metres_per_unit!r}.")
+    rig = eqx.tree_at(lambda c: c.t, rig, np.asarray(rig.t) * float(metres_per_unit))
+    centres = np.einsum("cji,cj->ci", rig.R, -rig.t)
+    span = float(np.max(np.linalg.norm(centres - centres[0], axis=-1)))
+    if span > far:
+        warnings.warn(
+            f"{writer}: the cameras stand {span:.4g} m apart, read as {whose} metres: is the "
+            "rig in millimetres? (metres_per_unit=0.001)",
+            stacklevel=3,
+        )
+    return rig
 
 
 # ---------------------------------------------------------------------------- ROS camera_info
@@ -751,7 +788,9 @@ def _ros_matrix(name: str, a) -> list[str]:
     return [f"{name}:", f"  rows: {a.shape[0]}", f"  cols: {a.shape[1]}", f"  data: [{values}]"]
 
 
-def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0.0):
+def save_ros(
+    paths, cameras: Camera, image_size, *, names=None, alpha: float = 0.0, metres_per_unit=1.0
+):
     """Save one camera, or a stereo pair, as ROS camera_info YAML (the format of
     `camera_calibration_parsers`, which `camera_info_manager` loads and ROS's calibrator
     writes): one file per camera, atomically. Returns the paths written.
@@ -766,6 +805,13 @@ def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0
     `mvcalib.stereo_rectify(cameras, image_size, alpha=alpha)` (OpenCV's R1, R2, P1, P2), so
     that ROS's `stereo_image_proc` rectifies the images as mvcalib does and `load_ros` reads the
     pair's relative pose back. A pinhole with skew is refused, as `save_opencv` refuses it.
+
+    ROS's baseline (P2's fourth column, `-f' B`) is in metres, and a rig is in its target's
+    units: give `metres_per_unit` (0.001 for a board measured in millimetres); a pair whose
+    cameras then stand more than 10 m apart is written with a warning. ROS takes the left
+    camera first: a pair whose second camera stands to the left of the first (a positive
+    `Tx`, which ROS would read as a disparity of the wrong sign) is refused, with the order to
+    pass.
 
     **Example:**
 
@@ -798,8 +844,15 @@ def save_ros(paths, cameras: Camera, image_size, *, names=None, alpha: float = 0
     rig = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float).reshape(
         (len(paths),) + np.shape(a)[len(shape):]), cameras)  # fmt: skip
     if len(paths) == 2:
-        rect = stereo_rectify(cameras, size, alpha=alpha)
+        rig = _in_metres(rig, metres_per_unit, "save_ros", "ROS's", 10.0)
+        rect = stereo_rectify(rig, size, alpha=alpha)
         R, P = np.asarray(rect.R), np.asarray(rect.P)
+        if not bool(rect.vertical) and P[1, 0, 3] > 0:
+            raise ValueError(
+                "the pair's second camera stands to the left of the first; ROS's stereo pair "
+                "is the left camera first: pass `cameras[::-1]` (and the names, paths, in that "
+                "order)."
+            )
     else:
         K = np.asarray(undistorted(rig, size, alpha=alpha).K)
         R, P = np.eye(3)[None], np.concatenate([K, np.zeros((1, 3, 1))], -1)
@@ -1146,17 +1199,7 @@ def save_kalibr(
             "starting rig's k3, e.g. caliscope's or OpenCV's, is kept where not estimated); or "
             "save as OpenCV's YAML or COLMAP's FULL_OPENCV, which hold k3."
         )
-    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
-        raise ValueError(f"`metres_per_unit` is positive; got {metres_per_unit!r}.")
-    rig = eqx.tree_at(lambda c: c.t, rig, rig.t * float(metres_per_unit))
-    centres = np.einsum("cji,cj->ci", rig.R, -rig.t)
-    span = float(np.max(np.linalg.norm(centres - centres[0], axis=-1)))
-    if span > 100.0:
-        warnings.warn(
-            f"save_kalibr: the cameras stand up to {span:.4g} m apart, read as Kalibr's metres: "
-            "is the rig in millimetres? (metres_per_unit=0.001)",
-            stacklevel=2,
-        )
+    rig = _in_metres(rig, metres_per_unit, "save_kalibr", "Kalibr's", 100.0)
     width, height = (int(v) for v in image_size)
     topics = [f"/cam{i}/image_raw" for i in range(n)] if topics is None else list(topics)
     if len(topics) != n:

@@ -476,6 +476,18 @@ def test_load_ros_reads_a_camera_info_file_as_ros_writes_it(tmp_path):
     assert bool(jnp.isnan(camera.t).all())
     with pytest.raises(ValueError, match=r"ROS camera_info file; read it with mc.io.load_ros"):
         mc.io.load_opencv(path)
+    # as PyYAML writes it (block lists indented as their keys), and with comments
+    import yaml
+
+    commented = ROS_FILE.replace("plumb_bob", "plumb_bob  # k1 k2 p1 p2 k3").replace(
+        "camera_name: narrow_stereo", "# the left camera\ncamera_name: 'narrow_stereo'  # #1"
+    )
+    for text in (yaml.dump(yaml.safe_load(ROS_FILE)), commented):
+        path.write_text(text)
+        again, names = mc.io.load_ros(path)
+        assert names == ["narrow_stereo"]
+        _equal(again.K, camera.K)
+        _equal(again.dist, camera.dist)
     path.write_text(ROS_FILE.replace("camera_matrix:", "camera_matrx:"))
     with pytest.raises(ValueError, match="camera_matrix is missing or malformed.*camera_info"):
         mc.io.load_ros(path)
@@ -552,4 +564,15 @@ def test_save_ros_refuses_what_ros_cannot_hold(tmp_path):
         mc.io.save_ros(tmp_path / "a.yaml", pair, (1280, 800))
     with pytest.raises(ValueError, match="image_size"):
         mc.io.save_ros(tmp_path / "a.yaml", pair[0], 1280)
+    # the right camera first (a robotics user's trial: swapped files, silently)
+    swapped = jax.tree_util.tree_map(lambda x: x[::-1], pair)
+    with pytest.raises(ValueError, match=r"second camera stands to the left.*cameras\[::-1\]"):
+        mc.io.save_ros([tmp_path / "a.yaml", tmp_path / "b.yaml"], swapped, (1280, 800))
     assert not list(tmp_path.iterdir())
+    # ROS's metres: a pair in millimetres warns, and `metres_per_unit` scales it
+    in_mm = eqx.tree_at(lambda c: c.t, pair, pair.t * 1000.0)
+    paths = [tmp_path / "a.yaml", tmp_path / "b.yaml"]
+    with pytest.warns(UserWarning, match=r"stand 120.\d+ m apart.*millimetres"):
+        mc.io.save_ros(paths, in_mm, (1280, 800))
+    mc.io.save_ros(paths, in_mm, (1280, 800), metres_per_unit=0.001)
+    np.testing.assert_allclose(mc.io.load_ros(*paths)[0].t, pair.t, atol=1e-12)
