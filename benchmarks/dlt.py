@@ -19,6 +19,9 @@ skips them).
   to bound its memory).
 - **numpy loop**: the same math per camera (`np.linalg.svd` of one 2N x 12 matrix at a time).
 - **cv2 decompose**: the NumPy DLT per camera, then `cv2.decomposeProjectionMatrix` on its P.
+- **mc.solve_pnp**: `mc.solve_pnp` with the *true* cameras' K (pose only: its closed form and
+  Levenberg-Marquardt on the pose), the one-call API called eagerly, at the headline cell (C =
+  4096, N = 19) of the quick run and every cell of the full run.
 - **cv2 solvePnP**: `cv2.solvePnP` (iterative) per camera with the *true* K: pose only, a
   smaller problem than the others solve.
 - **cv2 calibrateCamera**: per camera, with `CALIB_USE_INTRINSIC_GUESS` (OpenCV needs an
@@ -98,7 +101,8 @@ NOISE = 0.3  # pixels
 IMAGE_SIZE = (1000, 1100)
 SEED = 0
 LOOPS = ("numpy loop", "cv2 decompose", "cv2 solvePnP", "cv2 calibrateCamera")
-NOT_DLT = ("cv2 solvePnP", "cv2 calibrateCamera")  # other problems: no DLT bound for them
+# other problems: no DLT bound for them
+NOT_DLT = ("mc.solve_pnp", "cv2 solvePnP", "cv2 calibrateCamera")
 
 
 # ---------------------------------------------------------------------------------- data
@@ -352,6 +356,11 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
         fns["mvcalib, world (C,N,3)"] = lambda: jax.block_until_ready(
             mvcalib_calibrate(jworld_c, jpixels, jmask)
         )
+        # pose only from the true K, as the solvePnP loop: closed form and Levenberg-Marquardt
+        truth = cameras[:C]
+        fns["mc.solve_pnp"] = lambda: jax.block_until_ready(
+            mc.solve_pnp(truth, world, jpixels, jmask)
+        )
     fns["numpy batched"] = lambda: numpy_batched(world, pixels, mask)
     fns["numpy loop"] = lambda: numpy_loop(*sub)
     fns["cv2 decompose"] = lambda: cv2_decompose_loop(*sub)
@@ -376,6 +385,7 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
     if with_calibrate:
         krt["calibrate()"] = camera_krt(outputs["calibrate()"].cameras)
         krt["mvcalib, world (C,N,3)"] = camera_krt(outputs["mvcalib, world (C,N,3)"])
+        krt["mc.solve_pnp"] = camera_krt(outputs["mc.solve_pnp"].cameras)
     rms = {
         name: reprojection_rms(world, pixels[: len(v[0])], mask[: len(v[0])], *v)
         for name, v in krt.items()
@@ -385,7 +395,7 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
     # Peak memory: XLA's analysis for mvcalib's compiled function, tracemalloc for the rest.
     peak = {"mvcalib": xla_peak_mb(mvcalib_calibrate, jworld, jpixels, jmask)}
     for name, fn in fns.items():
-        if name not in peak and name != "calibrate()":
+        if name not in peak and name not in ("calibrate()", "mc.solve_pnp"):
             peak[name] = tracemalloc_peak_mb(fn)
     flops = bound.dlt_decomposition_flops(N)
     n_bytes = bound.dlt_bytes(N, n_cameras=C)
@@ -394,7 +404,7 @@ def bench_cell(cameras, C, N, *, mode, limits, with_calibrate):
     bound_min_us = 1e6 * bound.bound_seconds(minimal, n_bytes, limits)
 
     us = {name: 1e6 * st["median"] / cameras_timed[name] for name, st in stats.items()}
-    jitted = ("mvcalib", "calibrate()")
+    jitted = ("mvcalib", "calibrate()", "mc.solve_pnp")
     paths = []
     for name, st in stats.items():
         n = len(rms[name])

@@ -18,8 +18,8 @@
 
 Data are read from `$MVCALIB_DATA` (default `../shared/data`); see its SOURCE.md.
 `--quick` samples fewer tracks for the bundle adjustment (1000 instead of `bundle_adjust`'s
-default 2000, 2 rounds instead of 3). Run from the repository root: `python benchmarks/real_data.py [--quick]`; results go to
-`benchmarks/results/real_data.json`.
+default 2000, 2 rounds instead of 3). Run from the repository root:
+`python benchmarks/real_data.py [--quick]`; results go to `benchmarks/results/real_data.json`.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ intrinsic parameter and distortion coefficient held: one compiled call for all v
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -146,15 +147,16 @@ def solve_pnp(
         pixels = jnp.broadcast_to(pixels, views + (n, 2)).reshape(-1, n, 2)
         mask = jnp.broadcast_to(mask, views + (n,)).reshape(-1, n)
         cameras = _flat(cameras, views, jnp)
+    quick = math.prod(mask.shape) <= _buckets.COMPACT  # (a small program compiles quickly)
     seed = _closed_form(cameras, world, plane, pixels, mask, planar=planar, rcond=rcond,
-                        quick=True)  # fmt: skip
+                        quick=quick)  # fmt: skip
     if concrete and not views and not np.all(np.isfinite(np.asarray(seed.t[0]))):
         raise ValueError(
             f"the view's {int(np.sum(mask[0]))} points give no closed-form pose: too few (a "
             f"{'plane needs 4' if planar else '3-D target needs 6'}), collinear, or a DLT that "
             "does not fit them (wrong correspondences?)."
         )
-    out = _solved(seed, world, pixels, mask, **options)
+    out = _solved(seed, world, pixels, mask, quick=quick, **options)
     if concrete:
         out = _buckets.cut(out, views)
         return _buckets.cut_points(out, _point_arrays, n, len(views))
@@ -165,12 +167,12 @@ def _point_arrays(out: Refinement) -> tuple:
     return out.inliers, out.report.residuals, out.report.mask
 
 
-def _solved(seed, world, pixels, mask, *, loss, max_steps, max_relative_rms, minimum):
+def _solved(seed, world, pixels, mask, *, loss, max_steps, max_relative_rms, minimum, quick):
     """`refine` of the seeded poses (`(V,)` cameras, `pixels (V, N, 2)`), each checked: too few
     points for the closed form, -1; a pose that fits the points it kept poorly, -3 (NaN)."""
     out = refine(seed, world, pixels, mask, distortion=(), fix=_HELD, loss=loss,
                  max_steps=max_steps)  # fmt: skip
-    return _checked(out, pixels, mask, max_relative_rms, minimum, quick=True)
+    return _checked(out, pixels, mask, max_relative_rms, minimum, quick=quick)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
