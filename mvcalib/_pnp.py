@@ -76,8 +76,8 @@ def solve_pnp(
     with fewer points than the closed form needs (4 of a plane, 6 of a 3-D target), `-2` where
     it fails (points collinear, a DLT that does not fit them), `-3` where the pose fits its
     points poorly (`max_relative_rms`: a wrong correspondence); `messages()` says which.
-    Derivatives with respect to `pixels`, `target` and the cameras'
-    parameters are those of the optimum (implicit).
+    Derivatives with respect to `pixels` and the cameras' intrinsics and distortion are those
+    of the optimum (implicit).
 
     **Example:**
 

@@ -2,6 +2,7 @@
 OpenCV's `solvePnP`."""
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -138,15 +139,25 @@ def test_derivatives_are_those_of_the_optimum():
     pixels = np.asarray(camera.project(OBJECT))
     pixels = pixels + np.random.default_rng(9).normal(0.0, 0.5, pixels.shape)
 
-    def depth(pixels):  # the target's distance along the optical axis
-        return mc.solve_pnp(camera, OBJECT, pixels).cameras.t[2]
+    def depth(pixels, focal, k1):  # the target's distance along the optical axis
+        held = eqx.tree_at(lambda c: (c.alpha_u, c.dist), camera,
+                           (jnp.asarray(focal), camera.dist.at[0].set(k1)))  # fmt: skip
+        return mc.solve_pnp(held, OBJECT, pixels).cameras.t[2]
 
-    value, gradient = jax.value_and_grad(depth)(jnp.asarray(pixels))  # traced: not padded
-    np.testing.assert_allclose(value, depth(pixels), rtol=1e-9)
-    gradient = np.asarray(gradient)
+    point = (pixels, camera.alpha_u, camera.dist[0])
+    value, gradient = jax.value_and_grad(depth, argnums=(0, 1, 2))(*point)  # traced: not padded
+    np.testing.assert_allclose(value, depth(*point), rtol=1e-9)
+    by_pixels = np.asarray(gradient[0])
     h = 1e-2  # px: the solves stop at steps of 1e-5 standard errors
     for n, k in [(0, 0), (7, 1), (13, 0), (19, 1)]:
         step = np.zeros_like(pixels)
         step[n, k] = h
-        central = (float(depth(pixels + step)) - float(depth(pixels - step))) / (2 * h)
-        assert abs(gradient[n, k] - central) < 1e-6 * np.abs(gradient).max(), (n, k)
+        moved = [float(depth(pixels + sign * step, *point[1:])) for sign in (1, -1)]
+        central = (moved[0] - moved[1]) / (2 * h)
+        assert abs(by_pixels[n, k] - central) < 1e-6 * np.abs(by_pixels).max(), (n, k)
+    # the held intrinsics and distortion move the pose: implicit derivatives through the optimum
+    for i, h in ((1, 1e-2), (2, 1e-5)):
+        up, down = list(point), list(point)
+        up[i], down[i] = point[i] + h, point[i] - h
+        central = (float(depth(*up)) - float(depth(*down))) / (2 * h)
+        assert abs(float(gradient[i]) - central) < 1e-4 * abs(central), i
