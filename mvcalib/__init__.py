@@ -25,6 +25,7 @@ __version__ = "0.1.0"
 # Public submodules, and the public names of the private modules, by module.
 _SUBMODULES = ("io", "plot", "synthetic", "targets")  # plot imports matplotlib only to draw
 _EXPORTS = {
+    "_buckets": ("quick_compiler_options",),
     "_bundle": ("BundleAdjustment", "RigRefinement", "bundle_adjust", "refine_rig"),
     "_cache": ("enable_compilation_cache",),
     "_camera": ("Camera", "distort", "image_to_pixel", "pixel_to_image", "undistort_points"),
@@ -88,6 +89,7 @@ if typing.TYPE_CHECKING:
     from . import plot as plot
     from . import synthetic as synthetic
     from . import targets as targets
+    from ._buckets import quick_compiler_options as quick_compiler_options
     from ._bundle import BundleAdjustment as BundleAdjustment
     from ._bundle import RigRefinement as RigRefinement
     from ._bundle import bundle_adjust as bundle_adjust

@@ -85,6 +85,17 @@ def test_a_loss_of_another_scale_compiles_nothing(caplog):
         mc.Cauchy(0.0)
 
 
+def test_a_users_jit_compiles_quickly_with_the_quick_options():
+    """`mc.quick_compiler_options()`: options this XLA takes (an unknown one is an error at
+    compile time), and a user's program compiled with them answers as mvcalib's calls do."""
+    options = mc.quick_compiler_options()
+    assert set(options) <= set(_buckets._QUICK) and (jax.default_backend() != "cpu" or options)
+    world, pixels, mask = _rig(3, 5, 19)
+    mine = jax.jit(lambda p: mc.calibrate(world, p, mask).cameras.alpha_u, compiler_options=options)
+    np.testing.assert_allclose(mine(pixels), mc.calibrate(world, pixels, mask).cameras.alpha_u,
+                               rtol=1e-9)  # fmt: skip
+
+
 # The script of issue 39: rigs of 3 to 33 cameras, 15 to 40 points.
 RIGS = ((3, 15), (5, 22), (7, 40), (12, 19), (20, 31), (33, 27))
 
