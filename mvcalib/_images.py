@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import os
 import sys
+import warnings
 
 import equinox as eqx
 import jax
@@ -24,7 +25,7 @@ from ._second_look import _gate, _rms
 from ._second_look import second_look as _second_look
 from ._status import Status
 from ._triangulate import triangulate
-from .targets import Target, _layout, box_corner, check_target
+from .targets import Target, _grid_turns, _layout, box_corner, check_target
 
 __all__ = ["ImageCalibration", "calibrate_images", "read_image"]
 
@@ -509,9 +510,11 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
     - `photos`: per camera, its photos in frame order (paths or images; None where it took
       none): `photos[c][f]`, every camera with as many frames.
     - `grid`: a grid of dots made by `mvcalib.targets.dot_grid`, its markers as its
-      `fiducials`. Without them a symmetric grid's ids agree within one camera's views only;
-      an asymmetric grid with an odd number of rows needs none while every camera sees the
-      board from the same side.
+      `fiducials`. Without them a symmetric grid's ids are fixed only up to its half turn (its
+      quarter turns if square), read from each photo's own orientation: photos that see the
+      board turned by more than a quarter turn in its plane, from one camera or several, give
+      its dots other ids (a warning says so for a rig); an asymmetric grid with an odd number of
+      rows needs none while every camera sees the board from the same side.
     - `names`: the cameras' names; default `cam0`, `cam1`, ...
     - `detect`: options of `detect_dots` (e.g. `dark_dots=False`).
     - `progress`: a line on stderr per photo flagged or unreadable, and ten on how far it got
@@ -571,7 +574,19 @@ def observe_grid(photos, grid: Target, *, names=None, detect: dict | None = None
             f"no such photo file: {photos[c][f]} ({names[c]}, frame {f})"
             + (f", and {more} more" if more else "")
         )
-    one = functools.partial(_grid_labels, detect=dict(detect or {}), layout=_layout(grid),
+    layout = _layout(grid)
+    if C > 1 and not len(grid.fiducials) and _grid_turns(*layout) > 1:
+        # (a rig's photographer's trial: 864 of 2592 labels half turned, no word, and then
+        # calibrate_rig blamed another camera)
+        warnings.warn(
+            f"observe_grid: the {layout[0]} x {layout[1]} grid has no markers, so its dots' ids "
+            "are fixed only up to its half turn, from each photo's own orientation: cameras (or "
+            "frames) that see the board turned by more than a quarter turn give other ids, and a "
+            "rig calibrated from them fails. Print and give markers: mc.targets.dot_grid(rows, "
+            f"cols, spacing, markers=(0, 1, 2, {layout[1]})).",
+            stacklevel=2,
+        )
+    one = functools.partial(_grid_labels, detect=dict(detect or {}), layout=layout,
                             markers=grid.fiducials, n_points=len(points))  # fmt: skip
     every = max(len(taken) // 10, 1)
     found = 0

@@ -298,6 +298,19 @@ def _grid_symmetries(rows: int, cols: int, asymmetric: bool = False) -> np.ndarr
     return moves
 
 
+def _grid_turns(rows: int, cols: int, asymmetric: bool = False) -> int:
+    """How many of the grid's moves onto itself (`_grid_symmetries`) are turns in its plane,
+    the identity among them, not mirror images: with more than one, a photo's orientation
+    alone fixes its dots' ids only up to them (markers fix them)."""
+    lattice = _grid_lattice(rows, cols, asymmetric).astype(float)
+    design = np.c_[lattice, np.ones(len(lattice))]
+    turns = 0
+    for move in _grid_symmetries(rows, cols, asymmetric):
+        A = np.linalg.lstsq(design, lattice[move], rcond=None)[0][:2]
+        turns += np.linalg.det(A) > 0
+    return int(turns)
+
+
 def _layout(target: Target) -> tuple[int, int, bool]:
     """`(rows, cols, asymmetric)` of a grid made by `dot_grid` (ids row by row); ValueError for
     any other target."""
