@@ -44,6 +44,7 @@ from ._camera import (
     unit_camera,
     where_cameras,
 )
+from ._pipeline import CalibrationError
 from ._planar import (
     MIN_PLANE_POINTS,
     _focal_lengths,
@@ -158,8 +159,9 @@ _DEGENERATE_IN_A_RIG = (
 )
 
 
-class SolveFailed(ValueError):
-    """`calibrate_rig`'s joint solve left every camera POOR_FIT."""
+class SolveFailed(CalibrationError):
+    """`calibrate_rig`'s joint solve left every camera POOR_FIT (a `ValueError`, and the
+    `mvcalib.CalibrationError` a strict `calibrate` raises)."""
 
     def __init__(
         self, rms: float, iterations: int, lens: str = "pinhole", worst: str = "", result=None
@@ -170,7 +172,8 @@ class SolveFailed(ValueError):
             "the rig's joint solve failed: every camera reprojects its points with an RMS above "
             f"`max_relative_rms` of their spread (RMS {rms:.3g} px after {iterations} steps"
             f"{worst}). Check that the detections match the target's points (ids, order, "
-            "units); for wrong detections, a robust `loss=mc.Huber(2.0)` (or `mc.Cauchy(2.0)` "
+            "units; a grid without markers numbers its dots only up to its half turn); for "
+            "wrong detections, a robust `loss=mc.Huber(2.0)` (or `mc.Cauchy(2.0)` "
             f"for many); or start from known `cameras=`{wide}."
         )
 
