@@ -114,8 +114,35 @@ class ImageCalibration:
             names=names,
         )
         why = "a photo transposed or flipped, or a target in a left-handed frame"
-        notes = [mirror_note(self.calibration, names, why), self._loose_lens_note(names)]
+        notes = [
+            mirror_note(self.calibration, names, why),
+            self._loose_lens_note(names),
+            self._outside_note(names),
+        ]
         return "\n".join([*lines, "", table, *filter(None, notes)])
+
+    def _outside_note(self, shown) -> str:
+        """A note naming the calibrated cameras whose principal point lies outside their photo:
+        the dots did not fix it (a flat or distant target fills a narrow field of view; a window
+        or water between the camera and the target bends the rays, which a pinhole model then
+        absorbs in odd intrinsics). OpenPTV's cavity photos: three of four, one 1600 px outside.
+        (Printed by the command line alone until a photographer's trial missed it in Python.)"""
+        outside = []
+        for i, detection in enumerate(self.detections):
+            if detection is None or not self.ok[i]:
+                continue
+            height, width = detection.image_shape
+            u0, v0 = float(self.cameras.u0[i]), float(self.cameras.v0[i])
+            if not (0 <= u0 <= width and 0 <= v0 <= height):
+                outside.append(f"{shown[i]} ({u0:.0f}, {v0:.0f}) of {width} x {height}")
+        if not outside:
+            return ""
+        return (
+            f"note: principal points outside the photo: {'; '.join(outside)} px. The dots do not "
+            "fix these cameras' intrinsics (a target that fills a narrow field of view, or rays "
+            "bent by a window or water, which the pinhole model absorbs): their poses and "
+            "triangulation within the target's volume hold, extrapolation beyond it does not."
+        )
 
     def _loose_lens_note(self, shown) -> str:
         """A line naming the calibrated cameras whose refined distortion the dots leave unknown

@@ -1590,7 +1590,6 @@ def _calibrate_images(args) -> int:
         workers=_workers(args, len(args.images)),
     )
     print(result)
-    _note_loose_principal_points(result)
     sizes = {d.image_shape[::-1] for d in result.detections if d is not None}
     args.image_size = sizes.pop() if len(sizes) == 1 else None  # (width, height)
     if args.format in _SIZED and args.image_size is None:
@@ -1624,28 +1623,6 @@ def _calibrate_images(args) -> int:
         f"to {args.out} ({args.format}){dots}"
     )
     return 0 if n_ok == len(result.names) else 1
-
-
-def _note_loose_principal_points(result) -> None:
-    """A note naming the calibrated cameras whose principal point lies outside their photo: the
-    dots did not fix it (a flat or distant target fills a narrow field of view; a window or water
-    between the camera and the target bends the rays, which a pinhole model then absorbs in
-    odd intrinsics). OpenPTV's cavity photos: three of four, one 1600 px outside."""
-    cameras, outside = result.cameras, []
-    for i, detection in enumerate(result.detections):
-        if detection is None or not result.ok[i]:
-            continue
-        height, width = detection.image_shape
-        u0, v0 = float(cameras.u0[i]), float(cameras.v0[i])
-        if not (0 <= u0 <= width and 0 <= v0 <= height):
-            outside.append(f"{result.names[i]} ({u0:.0f}, {v0:.0f}) of {width} x {height}")
-    if outside:
-        print(
-            f"note: principal points outside the photo: {'; '.join(outside)} px. The dots do not "
-            "fix these cameras' intrinsics (a target that fills a narrow field of view, or rays "
-            "bent by a window or water, which the pinhole model absorbs): their poses and "
-            "triangulation within the target's volume hold, extrapolation beyond it does not."
-        )
 
 
 # --workers: processes that read the photos and find their dots (`_photos._in_workers`)
