@@ -25,6 +25,7 @@ import pathlib
 import re
 import sys
 import tempfile
+import warnings
 
 EXAMPLES = {
     "calibrate": """\
@@ -404,6 +405,13 @@ def build_parser() -> argparse.ArgumentParser:
         "mvcalib's box corner, labelled from its fiducials",
     )
     images.add_argument(
+        "--dot-radius",
+        type=float,
+        metavar="R",
+        help="the --target's dots' radius, in its units: the dots' perspective bias is removed "
+        "only where it is known",
+    )
+    images.add_argument(
         "--clicks",
         metavar="FILE",
         help="clicked seeds, CSV with the header image,dot_id,pixel_x,pixel_y (image: the file's "
@@ -555,6 +563,8 @@ def _check_usage(parser, args) -> None:
                 parser.error(f"no such file: {getattr(args, flag)}")
         if args.clicks and not args.target:
             parser.error("--clicks name dots of a --target file")
+        if args.dot_radius is not None and not (args.target and args.dot_radius > 0):
+            parser.error("--dot-radius is the --target file's dots' radius, a positive number")
     if (
         args.command in ("report", "triangulate")
         and pathlib.Path(args.rig).suffix.lower() == ".csv"
@@ -1568,7 +1578,9 @@ def _calibrate_images(args) -> int:
     from ._images import calibrate_images
     from ._refine import Huber
 
-    target = targets.from_file(args.target) if args.target else targets.box_corner()
+    radius = float("nan") if args.dot_radius is None else args.dot_radius
+    target = targets.from_file(args.target, dot_radius=radius) if args.target else (
+        targets.box_corner())  # fmt: skip
     # (a malformed clicks file, as a malformed --target, is bad input: exit code 2)
     seeds = io.load_clicks(args.clicks, args.images, target) if args.clicks else None
     _check_seeds(args, target, seeds)
@@ -1577,18 +1589,20 @@ def _calibrate_images(args) -> int:
         refine = {} if args.distortion is None else {"distortion": args.distortion}
         if args.huber is not None:
             refine["loss"] = Huber(args.huber)
-    result = calibrate_images(
-        args.images,
-        target,
-        refine=refine,
-        detect=dict(dark_dots=not args.bright_dots),
-        seeds=seeds,
-        focal=args.focal,
-        progress=not args.quiet,
-        second_look=not args.no_second_look,
-        label=dict(trust_seed=True) if args.trust_clicks else None,
-        workers=_workers(args, len(args.images)),
-    )
+    with warnings.catch_warnings():  # (an unknown dot radius: the result's note says it)
+        warnings.filterwarnings("ignore", "calibrate_images: the target's dot radius")
+        result = calibrate_images(
+            args.images,
+            target,
+            refine=refine,
+            detect=dict(dark_dots=not args.bright_dots),
+            seeds=seeds,
+            focal=args.focal,
+            progress=not args.quiet,
+            second_look=not args.no_second_look,
+            label=dict(trust_seed=True) if args.trust_clicks else None,
+            workers=_workers(args, len(args.images)),
+        )
     print(result)
     sizes = {d.image_shape[::-1] for d in result.detections if d is not None}
     args.image_size = sizes.pop() if len(sizes) == 1 else None  # (width, height)

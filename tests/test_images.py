@@ -1,5 +1,6 @@
 """From photographs to cameras: calibrate_images, the image demo, the rig file, and the CLI."""
 
+import dataclasses
 import json
 import os
 import re
@@ -127,6 +128,14 @@ def test_removing_the_perspective_bias_of_the_dots_brings_the_cameras_closer():
     )
     assert truth.shape == (4, 3, 4) and corrected.ok.all()
     assert f1.mean() < 0.5 * f0.mean() and c1.mean() < 0.5 * c0.mean()
+    assert corrected.bias_removed and not raw.bias_removed
+    # a target whose dots' radius is unknown (`targets.from_file`'s default) keeps the raw
+    # centroids, and says so (it did silently: a photographer's trial)
+    unknown = dataclasses.replace(TARGET, dot_radius=np.nan)
+    with pytest.warns(UserWarning, match="dot radius is unknown.*not removed"):
+        kept = mc.calibrate_images(photos, unknown)
+    assert not kept.bias_removed and "note: the target's dot radius is unknown" in str(kept)
+    np.testing.assert_allclose(kept.cameras.alpha_u, raw.cameras.alpha_u, rtol=1e-9)
     # What is left is the centroids' own noise: Table I on the corrected centroids.
     assert float(corrected.calibration.report.rms.max()) < 0.1
 
@@ -326,8 +335,12 @@ def test_cli_refuses_fewer_than_one_worker(tmp_path):
             ["calibrate-images", "a.png", "--out", "r.json", "--huber", "0"],
             "--huber must be positive",
         ),
+        (
+            ["calibrate-images", "a.png", "--out", "r.json", "--dot-radius", "2"],
+            "--dot-radius is the --target file's dots' radius",
+        ),
     ],
-    ids=["missing file", "no images", "no --out", "bad flag", "names", "trust", "huber"],
+    ids=["missing file", "no images", "no --out", "bad flag", "names", "trust", "huber", "radius"],
 )
 def test_cli_bad_usage_is_one_line_and_exit_code_2(tmp_path, args, message):
     for name in ("a.png", "b.png"):  # (files that exist: the arguments are checked first)
