@@ -13,8 +13,10 @@ at blur 0.5 / 1 px (the plain centroid over the blob grown by 3 px: 0.113 / 0.13
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import os
+import warnings
 
 import numpy as np
 from scipy import ndimage
@@ -404,6 +406,10 @@ def detect_dots(
             ("return_stages", return_stages),
         )
     )
+    # (as given: the other polarity is searched with them where few dots are found)
+    given = dict(min_area=min_area, max_area=max_area, max_ellipse_error=max_ellipse_error,
+                 min_solidity=min_solidity, max_aspect=max_aspect, dot_size=dot_size,
+                 smooth=smooth, margin=margin, exclude_border=exclude_border)  # fmt: skip
     grey = _as_grey(image)
     height, width = grey.shape
     max_area = 0.02 * grey.size if max_area is None else max_area
@@ -474,6 +480,21 @@ def detect_dots(
             "subtracted": subtracted,
             "detected": lookup[labels],
         }
+    if len(kept) < _FEW_DOTS and not _OTHER_POLARITY.get():
+        # (bright dots searched as dark ones gave 0-5 junk blobs and no word: a photographer's
+        # trial) the other polarity, searched as this image was, once
+        token = _OTHER_POLARITY.set(True)
+        try:
+            other = detect_dots(grey, dark_dots=not dark_dots, **given)
+        finally:
+            _OTHER_POLARITY.reset(token)
+        if len(other) >= max(_FEW_DOTS, 4 * len(kept)):
+            shade, ground = ("bright", "dark") if dark_dots else ("dark", "bright")
+            warnings.warn(
+                f"detect_dots found {len(kept)} dots, but {len(other)} {shade} ones: "
+                f"{shade} dots on a {ground} ground? dark_dots={not dark_dots}.",
+                stacklevel=2,
+            )
     return Detection(
         centroids=np.asarray(centroids, dtype=np.float64).reshape(-1, 2),
         area=np.asarray([r.area for r in kept], dtype=np.int64),
@@ -485,6 +506,12 @@ def detect_dots(
         stages=stages,
         image_shape=(int(height), int(width)),
     )
+
+
+# Fewer dots than this, and `detect_dots` looks whether the other polarity has many (once: the
+# flag is set while it looks).
+_FEW_DOTS = 4
+_OTHER_POLARITY = contextvars.ContextVar("mvcalib_other_polarity", default=False)
 
 
 def _disc_window(r, radius, sigma):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import pathlib
 import sys
+import warnings
 
 import numpy as np
 
@@ -111,7 +112,9 @@ def _read_and_detect(image, detect: dict):
     why)` where it cannot be read or searched (for `_in_workers`)."""
     try:
         picture = read_image(image) if isinstance(image, (str, os.PathLike)) else image
-        return picture, detect_dots(picture, **detect), None
+        with warnings.catch_warnings():  # (the callers say it in their own words)
+            warnings.filterwarnings("ignore", "detect_dots found")
+            return picture, detect_dots(picture, **detect), None
     except ValueError as error:
         return None, None, str(error)
 
@@ -128,4 +131,8 @@ def _grid_labels(photo, detect: dict, layout: tuple, markers, n_points: int) -> 
     try:
         return label_grid(detection, rows, cols, asymmetric=asymmetric, markers=markers)
     except ValueError as error:
-        return Labels.failed(n_points, 0, str(error))
+        hint = ""
+        if len(detection) < min(10, n_points) and detect.get("dark_dots", True):
+            hint = (f" ({len(detection)} dark dots found: bright dots on a dark ground? "
+                    "detect=dict(dark_dots=False), --bright-dots)")  # fmt: skip
+        return Labels.failed(n_points, 0, str(error) + hint)
