@@ -422,6 +422,15 @@ def calibrate_images(
     """
     target = box_corner() if target is None else target
     check_target(target)
+    centred = np.asarray(target.points, float) - np.mean(target.points, axis=0)
+    spread = np.linalg.svd(centred, compute_uv=False)
+    if spread[-1] <= 1e-6 * spread[0]:  # (every image DEGENERATE, after its labelling)
+        raise ValueError(
+            f"target {target.name!r} is flat: one photo of a plane does not determine a camera "
+            "(calibrate_images calibrates a camera a photo). Label each photo of a grid with "
+            "mc.label_grid and calibrate a camera from several with mc.calibrate_planar, or a "
+            "rig with mc.observe_grid and mc.calibrate_rig."
+        )
     images = _as_list(images)
     seeds = [None] * len(images) if seeds is None else list(seeds)
     if len(seeds) != len(images):

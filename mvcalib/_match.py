@@ -752,9 +752,15 @@ def label_grid(
     fewest = off.min(initial=spare + 1)
     rivals = np.sum(off <= fewest + (fewest > 0))  # (with keys dropped, two more for the others)
     if fewest > spare:
+        width, height = keys.max(0) - keys.min(0) + 1
+        why = "blobs beside the grid joined it"
+        if len(keys) == width * height:  # a whole, clean lattice: likely the grid's own size
+            # (a photographer's trial gave 9 x 14 for a 10 x 14 grid and was told of blobs)
+            why = (f"is the grid {min(width, height)} x {max(width, height)} (rows, cols)? Else "
+                   f"{why}")  # fmt: skip
         return Labels.failed(
-            M, B, f"the lattice found is {_extent(keys)} dots and fits nowhere on the grid: "
-            "blobs beside the grid joined it",
+            M, B, f"the lattice found is {_extent(keys)} dots, which fits nowhere on the "
+            f"{rows} x {cols} grid: {why}",
         )  # fmt: skip
     # with markers in view, they place a lattice that has lost a border row or column too (a
     # board half out of the image); not with clutter in it, whose keys differ by placement

@@ -553,6 +553,14 @@ def test_observe_grid_and_its_cli_take_an_asymmetric_grid(tmp_path):
     np.testing.assert_allclose(mc.io.load_observations(out_csv).pixels, obs.pixels, atol=1e-6)
 
 
+def test_a_grid_of_another_size_is_named():
+    """A whole 9 x 12 grid labelled as 8 x 12: the lattice found fits nowhere, and the message
+    asks about the size rather than blaming blobs beside the grid (a photographer's trial)."""
+    image = mc.synthetic.render(grid_view(0, 20.0), GRID, (1280, 960), key=0)
+    labels = mc.label_grid(mc.detect_dots(image), 8, 12)
+    assert not labels.ok and "is the grid 9 x 12 (rows, cols)?" in labels.message, labels.message
+
+
 def test_a_grid_with_a_missing_border_row_is_flagged():
     camera = grid_view(0, 20.0)
     image = mc.synthetic.render(camera, GRID, (1280, 960), hidden=range(0, 12), key=0)

@@ -220,6 +220,8 @@ def _misuses(rig):
         (lambda: jax.jit(lambda w: mc.undistorted(cameras[0], (w, 720)).K)(1280), TypeError,
          "`image_size` of mc.undistorted is an option"),
         (lambda: mc.solve_pnp(board.cameras, T, BP), ValueError, r"pass `cameras\[:, None\]`"),
+        (lambda: mc.calibrate_images([np.zeros((64, 64))], mc.targets.dot_grid(6, 8, 20.0)),
+         ValueError, r"is flat: one photo of a plane.*mc.label_grid.*mc.calibrate_planar"),
         (lambda: jax.jit(lambda n: mc.undistort_points(cameras, P, iterations=n))(20), TypeError,
          "`iterations` of mc.undistort_points is an option"),
     ]  # fmt: skip
