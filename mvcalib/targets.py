@@ -47,7 +47,13 @@ class Target:
         if ids.shape != (len(self.points),) or not np.issubdtype(ids.dtype, np.integer):
             raise ValueError(f"`ids` must be {len(self.points)} integers, one per dot.")
         if len(np.unique(ids)) != len(ids):
-            raise ValueError("`ids` must be distinct: two dots share an id.")
+            values, counts = np.unique(ids, return_counts=True)
+            shared = values[counts > 1][0]
+            rows = np.flatnonzero(ids == shared).tolist()
+            raise ValueError(
+                f"`ids` must be distinct: dots {rows} (from 0, in the target's order; a file's "
+                f"lines without its header) share the id {shared}."
+            )
         object.__setattr__(self, "ids", ids)
 
     def index(self, ids) -> np.ndarray:

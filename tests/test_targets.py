@@ -34,7 +34,7 @@ def test_a_csv_file_with_a_header_in_any_order(tmp_path):
         ("", "is empty"),
         ("id,x,y\n1,2,3\n", "header naming id, x, y, z .no 'z'"),
         ("1.5 0 0 0\n2 1 1 1\n", "must be integers"),
-        ("1 0 0 0\n1 1 1 1\n", "two dots share an id"),
+        ("1 0 0 0\n2 5 5 5\n1 1 1 1\n", r"dots \[0, 2\] .* share the id 1\."),
         ("1 0 0 nan\n", "not a finite number"),
         ("1 0 0\n", "expected lines of `id x y z`"),
         ("1 0 0 zero\n", "line 1 is neither numbers nor a header"),
