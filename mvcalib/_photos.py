@@ -8,6 +8,7 @@ of mvcalib's JAX modules.
 
 from __future__ import annotations
 
+import logging
 import os
 import pathlib
 import sys
@@ -33,6 +34,10 @@ def read_image(path) -> np.ndarray:
     # One named reader per format: imageio's own search would also try other installed
     # readers (OpenCV's prints its failures to stderr).
     tiff = path.suffix.lower() in (".tif", ".tiff")
+    # (tifffile logs a broken file's faults to stderr before failing; the error says them)
+    quiet = logging.getLogger("tifffile")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
     try:
         # The first frame of an animation (GIF, APNG); a TIFF's first page.
         image = (
@@ -45,6 +50,8 @@ def read_image(path) -> np.ndarray:
         if "can not handle the given uri" in reason:  # (imageio's words for an unknown format)
             reason = "not in a format Pillow reads: PNG, JPEG, BMP, GIF, ..."
         raise ValueError(f"{path}: cannot be read as an image ({reason[:200]})") from None
+    finally:
+        quiet.setLevel(level)
     image = np.asarray(image)
     if image.size == 0:  # (tifffile warns about a broken file and returns nothing)
         raise ValueError(f"{path}: cannot be read as an image (no image data in the file)")

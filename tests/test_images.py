@@ -490,3 +490,19 @@ def test_colmap_export_round_trips_and_refuses_skew(tmp_path):
     skewed = eqx.tree_at(lambda c: c.skew, rig, rig.skew + 0.5)
     with pytest.raises(ValueError, match="skew"):
         mc.io.save_colmap(tmp_path / "x", skewed, (1000, 1100))
+
+
+def test_a_truncated_tiff_is_refused_without_a_readers_noise(tmp_path, caplog):
+    """tifffile logged "<tifffile.TiffPages @...> invalid offset to first page" to stderr
+    before the error (a photographer's trial): the error says it alone."""
+    import io
+
+    import tifffile
+
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, np.zeros((64, 64), np.uint8))
+    path = tmp_path / "cut.tif"
+    path.write_bytes(buffer.getvalue()[:200])  # (its tags point past the end)
+    with pytest.raises(ValueError, match="cut.tif: cannot be read as an image"):
+        mc.read_image(path)
+    assert not [r for r in caplog.records if r.name.startswith("tifffile")]
