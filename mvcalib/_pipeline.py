@@ -294,13 +294,20 @@ def _refine_padded(seed, world, pixels, mask, options):
     return _refine.refine(seed, world, pixels, mask, **options)
 
 
+def poorly_fitted(refined, pixels, mask, max_relative_rms):
+    """Where a refinement's camera fits its points poorly (`_dlt.poor_fit`): its RMS over the
+    points the fit kept (a robust loss's inliers; all visible points for least squares) above
+    `max_relative_rms` of their spread."""
+    rms_kept = residual_rms(refined.report.residuals, refined.inliers)
+    sort = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
+    return _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms, sort)
+
+
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _checked(result, refined, world, pixels, mask, max_relative_rms) -> Calibration:
     """`result` with the refined cameras and report, each camera checked (`_dlt.poor_fit`) over
     the points the fit kept (a robust loss's inliers; all visible points for least squares)."""
-    rms_kept = residual_rms(refined.report.residuals, refined.inliers)
-    sort = _dlt.compact(math.prod(mask.shape[:-1]), mask.shape[-1])
-    poor = _dlt.poor_fit(rms_kept, pixels, mask, max_relative_rms, sort)
+    poor = poorly_fitted(refined, pixels, mask, max_relative_rms)
     status = jnp.where(result.ok & poor, Status.POOR_FIT, result.status).astype(jnp.int32)
     ok = status == Status.OK
     cameras = jax.tree_util.tree_map(

@@ -19,9 +19,9 @@ from jaxtyping import Array, Bool, Float
 
 from . import _buckets, _dlt, _validate
 from ._camera import Camera, undistort_points
+from ._pipeline import poorly_fitted
 from ._planar import MIN_PLANE_POINTS, _plane_frame
 from ._refine import POOR_FIT, TOO_FEW_POINTS, Cauchy, Huber, Refinement, refine
-from ._report import residual_rms
 from ._rig import _is_planar, _pair_poses_object, _pair_poses_planar
 from ._status import Status
 
@@ -177,11 +177,9 @@ def _solved(seed, world, pixels, mask, *, loss, max_steps, max_relative_rms, min
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _checked(out: Refinement, pixels, mask, max_relative_rms, minimum) -> Refinement:
-    """`out` with each view checked as `calibrate` checks a camera (`_dlt.poor_fit`, over the
-    points a robust loss keeps), and flagged with a NaN pose where it fails."""
-    kept = residual_rms(out.report.residuals, out.inliers)
-    sort = _dlt.compact(*mask.shape)
-    poor = _dlt.poor_fit(kept, pixels, mask, max_relative_rms, sort)
+    """`out` with each view checked as `calibrate` checks a camera (`poorly_fitted`), and
+    flagged with a NaN pose where it fails."""
+    poor = poorly_fitted(out, pixels, mask, max_relative_rms)
     result = jnp.where((out.result == 0) & poor, POOR_FIT, out.result)
     result = jnp.where(jnp.sum(mask, -1) < minimum, TOO_FEW_POINTS, result).astype(jnp.int32)
     flagged = result != out.result
