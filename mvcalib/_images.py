@@ -17,7 +17,7 @@ from . import _buckets, _label
 from ._detect import Detection
 from ._label import Labels, label_dots
 from ._match import match_dots
-from ._photos import _grid_labels, _in_workers, _read_and_detect, read_image
+from ._photos import _grid_labels, _in_workers, _read_and_detect, polarity_hint, read_image
 from ._pipeline import Calibration, CalibrationError, calibrate, mirror_note
 from ._render import ellipse_centres, true_centres
 from ._report import format_table
@@ -464,13 +464,9 @@ def calibrate_images(
         except ValueError as error:
             message = str(error).removeprefix(f"{names[i]}: ")  # the name is shown beside it
             labels.append(Labels.failed(len(target.points), 0, message))
-        few = detection is not None and len(detection) < min(10, len(target.points))
-        if not labels[-1].ok and few and detect.get("dark_dots", True):
-            # (a user's trial: bright dots searched as dark ones, "only 0 blobs found")
-            labels[-1] = dataclasses.replace(
-                labels[-1], message=labels[-1].message + f" ({len(detection)} dark dots found: "
-                "bright dots on a dark ground? detect=dict(dark_dots=False), --bright-dots)",
-            )  # fmt: skip
+        if not labels[-1].ok and detection is not None:
+            hint = polarity_hint(detection, len(target.points), detect)
+            labels[-1] = dataclasses.replace(labels[-1], message=labels[-1].message + hint)
         detections.append(detection)
         if progress:
             print(f"[{i + 1}/{len(images)}] {names[i]}: {labels[-1].message}", file=sys.stderr)

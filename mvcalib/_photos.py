@@ -138,8 +138,16 @@ def _grid_labels(photo, detect: dict, layout: tuple, markers, n_points: int) -> 
     try:
         return label_grid(detection, rows, cols, asymmetric=asymmetric, markers=markers)
     except ValueError as error:
-        hint = ""
-        if len(detection) < min(10, n_points) and detect.get("dark_dots", True):
-            hint = (f" ({len(detection)} dark dots found: bright dots on a dark ground? "
-                    "detect=dict(dark_dots=False), --bright-dots)")  # fmt: skip
-        return Labels.failed(n_points, 0, str(error) + hint)
+        return Labels.failed(n_points, 0, str(error) + polarity_hint(detection, n_points, detect))
+
+
+def polarity_hint(detection, n_points: int, detect: dict) -> str:
+    """For a photo that could not be labelled: where it was searched for dark dots and few were
+    found, a hint that they may be bright (a user's trial: OpenPTV's back-lit dots searched as
+    dark ones, "only 0 blobs found"); else ""."""
+    if len(detection) >= min(10, n_points) or not detect.get("dark_dots", True):
+        return ""
+    return (
+        f" ({len(detection)} dark dots found: bright dots on a dark ground? "
+        "detect=dict(dark_dots=False), --bright-dots)"
+    )
