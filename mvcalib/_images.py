@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _buckets, _label
+from . import _buckets, _label, _validate
 from ._detect import Detection
 from ._label import Labels, label_dots
 from ._match import match_dots
@@ -422,9 +422,7 @@ def calibrate_images(
     """
     target = box_corner() if target is None else target
     check_target(target)
-    centred = np.asarray(target.points, float) - np.mean(target.points, axis=0)
-    spread = np.linalg.svd(centred, compute_uv=False)
-    if spread[-1] <= 1e-6 * spread[0]:  # (every image DEGENERATE, after its labelling)
+    if _validate.is_planar(np.asarray(target.points, float)):  # (every image DEGENERATE)
         raise ValueError(
             f"target {target.name!r} is flat: one photo of a plane does not determine a camera "
             "(calibrate_images calibrates a camera a photo). Label each photo of a grid with "

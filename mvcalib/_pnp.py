@@ -22,7 +22,7 @@ from ._camera import Camera, undistort_points
 from ._pipeline import poorly_fitted
 from ._planar import MIN_PLANE_POINTS, _plane_frame
 from ._refine import POOR_FIT, TOO_FEW_POINTS, Cauchy, Huber, Refinement, refine
-from ._rig import _is_planar, _pair_poses_object, _pair_poses_planar
+from ._rig import _pair_poses_object, _pair_poses_planar
 from ._status import Status
 
 # Every parameter of the camera but its pose is held.
@@ -107,7 +107,7 @@ def solve_pnp(
         target = np.concatenate([target, np.zeros_like(target[:, :1])], -1)
     if target.ndim != 2 or target.shape[-1] != 3:
         raise ValueError(f"`target` must have shape (N, 3) or (N, 2); got {target.shape}.")
-    planar = _is_planar(target)
+    planar = _validate.is_planar(target)
     concrete = _buckets.applies(cameras, pixels, mask)
     xp = np if concrete else jnp
     world, pixels, mask = _validate.correspondences(target, pixels, mask, min_points=4, xp=xp)

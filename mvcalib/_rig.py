@@ -1853,7 +1853,7 @@ def calibrate_rig(
     if tuple(mask.shape) != (C, F, N):
         raise ValueError(f"`mask` must have shape {(C, F, N)}; got {tuple(mask.shape)}.")
     dtype = _validate.result_dtype(target.dtype, pixels.dtype)
-    planar = _is_planar(target)
+    planar = _validate.is_planar(target)
     minimum = MIN_PLANE_POINTS if planar else MIN_OBJECT_POINTS
     if concrete:
         mask = np.asarray(mask)
@@ -2179,16 +2179,6 @@ def _resected(result, which, target, pixels, mask, distortion, skew, dtype) -> t
             for rig, one in zip(*map(jax.tree_util.tree_leaves, (cameras, alone.cameras))):
                 rig[c] = one
     return jax.device_put(cameras), fitted
-
-
-def _is_planar(target: np.ndarray) -> bool:
-    """Whether the target's points lie on a plane (else they must span 3-D)."""
-    c = target - target.mean(0)
-    s = np.linalg.svd(c, compute_uv=False)
-    tol = 1e-6 if target.dtype == np.float64 else 1e-4
-    if len(target) < 4 or s[1] <= tol * s[0]:
-        raise ValueError("the target's points are collinear or too few (at least 4 needed).")
-    return bool(s[2] <= tol * s[0])
 
 
 def _check_origin_frame(origin_frame, reference, n_frames: int) -> None:

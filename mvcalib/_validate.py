@@ -326,3 +326,14 @@ def in_image(pixels, mask, image_size) -> None:
             f"({width:g}, {height:g}), e.g. ({x:.1f}, {y:.1f}): are the pixels (x = column, "
             "y = row) and the size (width, height)?"
         )
+
+
+def is_planar(target: np.ndarray) -> bool:
+    """Whether a target's points `(N, 3)` lie on a plane (else they must span 3-D); ValueError
+    where they are collinear or fewer than 4."""
+    c = target - target.mean(0)
+    s = np.linalg.svd(c, compute_uv=False)
+    tol = 1e-6 if target.dtype == np.float64 else 1e-4
+    if len(target) < 4 or s[1] <= tol * s[0]:
+        raise ValueError("the target's points are collinear or too few (at least 4 needed).")
+    return bool(s[2] <= tol * s[0])
