@@ -35,7 +35,10 @@ from __future__ import annotations
 import concurrent.futures
 import contextvars
 import functools
+import importlib.machinery
+import importlib.util
 import math
+import sys
 import warnings
 
 import equinox as eqx
@@ -262,6 +265,43 @@ def _known() -> frozenset:
     return frozenset(name for name, value in _QUICK.items() if compiles({name: value}))
 
 
+# jaxlib's CPU backend calls LAPACK's routines through SciPy: at its first lowering of a linear
+# algebra operation (an SVD, a Cholesky factor) it imports `scipy.linalg.cython_blas` and
+# `scipy.linalg.cython_lapack` for their function pointers, and with them all of `scipy.linalg`
+# (its `__init__`: 70 ms on this project's machine, on the main thread, inside every first call).
+_LAPACK_MODULES = ("cython_blas", "cython_lapack")
+
+
+@functools.cache
+def _lapack_from_scipy() -> None:
+    """Hand jaxlib SciPy's LAPACK without the rest of `scipy.linalg`: the two Cython modules are
+    loaded on their own (9 ms), jaxlib takes its pointers from them, and they leave
+    `sys.modules` again, so that the user's `import scipy.linalg` later is as it would have
+    been. Where anything differs from that (`scipy.linalg` imported already, another jaxlib or
+    SciPy, not a CPU), nothing is done, and jaxlib imports them itself at its first lowering."""
+    if "scipy.linalg" in sys.modules or jax.default_backend() != "cpu":
+        return
+    loaded = []
+    try:
+        import scipy  # (the package's own set-up first: its libraries' search path on Windows)
+        from jaxlib.cpu import _lapack
+
+        folder = [str(next(iter(scipy.__path__))) + "/linalg"]
+        for name in _LAPACK_MODULES:
+            spec = importlib.machinery.PathFinder.find_spec(name, folder)
+            spec.name = f"scipy.linalg.{name}"
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            sys.modules[spec.name] = module
+            loaded.append(spec.name)
+        _lapack.initialize()
+    except Exception:  # noqa: BLE001 (any surprise: jaxlib's own import, 70 ms later, will do)
+        pass
+    finally:
+        for name in loaded:
+            sys.modules.pop(name, None)
+
+
 class jit:  # noqa: N801 (used as `jax.jit` is)
     """`jit(fun, **kwargs)` (`jax.jit`, or `eqx.filter_jit` as `jit`) in two builds for calls from
     Python: optimised (`optimised_options`), and, called with `quick=True`, compiled quickly
@@ -289,6 +329,7 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
     def __call__(self, *args, quick: bool = False, **kwargs):
         if not _top_level():
             return self.traced(*args, **kwargs)
+        _lapack_from_scipy()
         signature = _signature(quick, args, kwargs)
         with collector_paused():
             build = self.quick if quick else self.optimised

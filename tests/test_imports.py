@@ -37,6 +37,27 @@ def test_photo_workers_import_no_jax():
     assert out.stdout.split() == ["[]"]
 
 
+def test_a_first_call_takes_lapack_without_the_rest_of_scipy_linalg():
+    """jaxlib takes LAPACK from SciPy at its first lowering of an SVD, and imported all of
+    `scipy.linalg` for it (70 ms of every first call); mvcalib hands it the two modules it reads
+    (`_buckets._lapack_from_scipy`) and leaves `sys.modules` as it was, so that `scipy.linalg`
+    imports later as usual."""
+    code = (
+        "import sys, numpy as np, mvcalib as mc\n"
+        "rng = np.random.default_rng(0)\n"
+        "world = rng.uniform(-1, 1, (12, 3))\n"
+        "K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])\n"
+        "h = (K @ (world + [0, 0, 5]).T).T\n"
+        "result = mc.calibrate(world, h[:, :2] / h[:, 2:])\n"
+        "print(round(float(result.cameras.alpha_u), 2))  # (float32)\n"
+        "print(sorted(m for m in sys.modules if m.startswith('scipy.linalg')))\n"
+        "import scipy.linalg, scipy.linalg.cython_blas\n"
+        "print(scipy.linalg.cython_lapack.__name__, scipy.linalg.svdvals(np.eye(2)).tolist())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines() == ["800.0", "[]", "scipy.linalg.cython_lapack [1.0, 1.0]"]
+
+
 def test_every_public_name_resolves():
     assert len(mc.__all__) == len(set(mc.__all__))
     for name in mc.__all__:
