@@ -323,12 +323,18 @@ def build_parser() -> argparse.ArgumentParser:
         "convert",
         "a rig file in another format",
         "Read a rig (mvcalib's JSON, OpenCV's or Kalibr's YAML, a COLMAP text model, "
-        "caliscope's or aniposelib's TOML) and write it as JSON, OpenCV's YAML, a COLMAP model, "
-        "aniposelib's TOML or Kalibr's camchain.yaml. Cameras that are not calibrated (NaN, "
-        "or a status other than OK in a JSON rig) are kept in JSON, with their status, RMS and "
-        "notes, and left out of the others.",
+        "caliscope's or aniposelib's TOML, ROS camera_info files) and write it as JSON, OpenCV's "
+        "YAML, a COLMAP model, aniposelib's TOML, Kalibr's camchain.yaml or ROS camera_info "
+        "files. Cameras that are not calibrated (NaN, or a status other than OK in a JSON rig) "
+        "are kept in JSON, with their status, RMS and notes, and left out of the others.",
     )
-    convert.add_argument("rig", metavar="RIG", help="rig file (JSON, .yml, .toml) or COLMAP folder")
+    convert.add_argument(
+        "rig",
+        nargs="+",
+        metavar="RIG",
+        help="rig file (JSON, .yml, .toml) or COLMAP folder; or ROS camera_info files, a stereo "
+        "pair's two (left first) giving their poses",
+    )
     _rig_output(convert, "every camera", "--image-size")
     convert.add_argument(
         "--image-size", **size, help="written to OpenCV's YAML; COLMAP and aniposelib need it"
@@ -576,7 +582,7 @@ def _check_usage(parser, args) -> None:
         )
     for flag in ("out", "plot", "save"):
         value = getattr(args, flag, None)
-        folder = flag == "out" and getattr(args, "format", None) == "colmap"  # (a model's)
+        folder = flag == "out" and getattr(args, "format", None) in _FOLDERS
         if value and not (folder and pathlib.Path(value).is_dir()):
             _check_writable(parser, flag, pathlib.Path(value))
     suffix = pathlib.Path(getattr(args, "out", "") or "").suffix.lower()
@@ -593,6 +599,7 @@ def _check_usage(parser, args) -> None:
         "opencv": "OpenCV's",
         "aniposelib": "aniposelib's",
         "kalibr": "Kalibr's",
+        "ros": "ROS's",
     }.get(getattr(args, "format", None))
     if not getattr(args, "metres_per_unit", 1.0) > 0:
         parser.error("--metres-per-unit must be positive (0.001 for a target in millimetres)")
@@ -649,7 +656,8 @@ def _check_usage(parser, args) -> None:
 
 _FORMATS = {".json": "json", ".yml": "opencv", ".yaml": "opencv", ".toml": "aniposelib"}  # --out's
 _SUFFIXES = {"kalibr": (".yaml", ".yml")}  # a format's files, where not `_FORMATS`'s
-_SIZED = ("colmap", "aniposelib", "kalibr")  # the formats whose cameras need an image size
+_SIZED = ("colmap", "aniposelib", "kalibr", "ros")  # the formats whose cameras need an image size
+_FOLDERS = ("colmap", "ros")  # the formats written into the folder --out
 
 
 def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
@@ -657,19 +665,20 @@ def _rig_output(parser, json_holds: str, colmap_needs: str) -> None:
     parser.add_argument("--out", required=True, metavar="PATH", help="rig file (or folder)")
     parser.add_argument(
         "--format",
-        choices=("json", "opencv", "colmap", "aniposelib", "kalibr"),
+        choices=("json", "opencv", "colmap", "aniposelib", "kalibr", "ros"),
         help=f"json ({json_holds}), opencv (FileStorage YAML), colmap (text model in the "
-        f"folder --out; needs {colmap_needs}), aniposelib (calibration.toml; needs it too) or "
-        "kalibr (Kalibr's camchain.yaml; needs it too); default from --out: .json, .yml or "
-        ".yaml (opencv), .toml",
+        f"folder --out; needs {colmap_needs}), aniposelib (calibration.toml; needs it too), "
+        "kalibr (Kalibr's camchain.yaml; needs it too) or ros (ROS camera_info files, NAME.yaml "
+        "a camera, in the folder --out: a rig of two as a rectified stereo pair, the left "
+        "camera first; needs it too); default from --out: .json, .yml or .yaml (opencv), .toml",
     )
     parser.add_argument(
         "--metres-per-unit",
         type=float,
         default=1.0,
         metavar="M",
-        help="--format kalibr: metres per unit of the rig, Kalibr's translations being metres "
-        "(0.001 for a target in millimetres; default 1)",
+        help="--format kalibr or ros: metres per unit of the rig, their translations being "
+        "metres (0.001 for a target in millimetres; default 1)",
     )
 
 
@@ -696,10 +705,10 @@ def _check_format(parser, args, suffix: str) -> None:
         if suffix not in _FORMATS:
             parser.error(
                 f"--out {args.out}: a .json, .yml/.yaml or .toml file, or a folder with "
-                "--format colmap"
+                "--format colmap or ros"
             )
         args.format = _FORMATS[suffix]
-    elif args.format != "colmap":
+    elif args.format not in _FOLDERS:
         own = [k for k, v in _FORMATS.items() if v == args.format]
         suffixes = _SUFFIXES.get(args.format, own)
         if suffix not in suffixes:
@@ -819,6 +828,8 @@ def _load_rig(path, *, record: bool = False):
     stored = []  # (a JSON rig's record, read with it)
     if path.is_dir():
         cameras, names = io.load_colmap(path)
+    elif suffix in (".yml", ".yaml") and _is_ros(path):
+        cameras, names = io.load_ros(path)
     elif suffix in (".yml", ".yaml") and _is_kalibr(path):
         cameras, names = io.load_kalibr(path)
     elif suffix in (".yml", ".yaml"):
@@ -846,7 +857,7 @@ def _convert(args) -> int:
 
     from ._status import Status
 
-    cameras, names, record = _load_rig(args.rig, record=True)
+    cameras, names, record = _load_rigs(args.rig)
     status = np.where(_calibrated(cameras), Status.OK, Status.NON_FINITE).astype(np.int32)
     rms, meta = np.full(len(names), np.nan), {}
     if record is not None:  # a JSON rig's statuses, RMS and meta carry over
@@ -856,13 +867,55 @@ def _convert(args) -> int:
             status = np.where(keep, stored, status).astype(np.int32)
         rms = rms if record["rms"] is None else record["rms"]
         meta = record["meta"]
-    meta = {**meta, "converted_from": str(args.rig)}
+    source = ", ".join(map(str, args.rig))
+    meta = {**meta, "converted_from": source}
     written = _write_rig(args, cameras, names, status, rms, meta)
-    print(f"{_count(written, 'camera')} of {args.rig} written to {args.out} ({args.format})")
+    print(f"{_count(written, 'camera')} of {source} written to {args.out} ({args.format})")
     if written < len(names):
         left = [f"{n} ({Status(s).name})" for n, s in zip(names, status) if s != Status.OK]
         print(f"left out, not calibrated: {', '.join(left)}", file=sys.stderr)
     return 0
+
+
+def _load_rigs(paths):
+    """`convert`'s input: one rig (`_load_rig`, with its record), or several ROS camera_info
+    files (`io.load_ros`: a stereo pair's two give their poses). Cameras whose intrinsics were
+    read but not their poses (a single camera_info) are refused with what to do instead."""
+    import numpy as np
+
+    from . import io
+
+    paths = [pathlib.Path(p) for p in paths]
+    if len(paths) == 1:
+        cameras, names, record = _load_rig(paths[0], record=True)
+    else:
+        others = [str(p) for p in paths if not (p.is_file() and _is_ros(p))]
+        if others:
+            raise ValueError(
+                f"convert takes one rig, or the camera_info files of ROS cameras; not one of "
+                f"these: {', '.join(others)}"
+            )
+        cameras, names = io.load_ros(*paths)
+        record = None
+    focal = np.asarray(cameras.alpha_u) * np.asarray(cameras.alpha_v)
+    posed = np.isfinite(np.asarray(cameras.R)).any() or np.isfinite(np.asarray(cameras.t)).any()
+    if np.isfinite(focal).all() and not posed:
+        raise ValueError(
+            f"{', '.join(map(str, paths))}: intrinsics without poses (a camera_info holds none; "
+            "a stereo pair's two files give theirs). Use them as calibrate-rig --intrinsics, "
+            "which finds the poses from the frames."
+        )
+    return cameras, names, record
+
+
+def _is_ros(path: pathlib.Path) -> bool:
+    """Whether a YAML file is a ROS camera_info (top-level `image_width:` and a `camera_matrix:`
+    map), not OpenCV's FileStorage."""
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError:
+        return False  # (the reader says why)
+    return all(re.search(rf"^{key}:", text, re.M) for key in ("image_width", "camera_matrix"))
 
 
 def _is_kalibr(path: pathlib.Path) -> bool:
@@ -992,10 +1045,10 @@ def _calibrate(args) -> int:
 
 def _write_rig(args, cameras, names, status, rms, meta) -> int:
     """The rig to `args.out` in `args.format`: JSON holds every camera with its status, RMS and
-    `meta`; OpenCV's YAML, COLMAP's model, aniposelib's TOML and Kalibr's YAML the calibrated
-    ones. Returns how many were written. Where no camera was calibrated nothing is written (a
-    rig file there, perhaps a good one from an earlier run, was replaced by one of NaN
-    cameras)."""
+    `meta`; OpenCV's YAML, COLMAP's model, aniposelib's TOML, Kalibr's YAML and ROS's files the
+    calibrated ones. Returns how many were written. Where no camera was calibrated nothing is
+    written (a rig file there, perhaps a good one from an earlier run, was replaced by one of
+    NaN cameras)."""
     import numpy as np
 
     from . import io
@@ -1020,9 +1073,43 @@ def _write_rig(args, cameras, names, status, rms, meta) -> int:
         io.save_kalibr(
             out, cameras, args.image_size, topics=topics, metres_per_unit=args.metres_per_unit
         )
+    elif args.format == "ros":
+        _write_ros(out, cameras, names, args)
     else:
         io.save_colmap(out, cameras, args.image_size, names=_unique(map(_no_spaces, names)))
     return len(keep)
+
+
+def _write_ros(folder: pathlib.Path, cameras, names, args) -> None:
+    """ROS camera_info files in `folder`, `NAME.yaml` a camera: two cameras as a rectified stereo
+    pair (`io.save_ros`, the left camera first, in whichever order the rig gives them), any
+    other number each on its own (a camera_info holds no pose: ROS keeps a rig's poses in tf)."""
+    from . import io
+
+    say = _progress(args)
+    folder.mkdir(parents=True, exist_ok=True)
+    names = _unique(map(_opencv_name, names))
+    paths = [folder / f"{name}.yaml" for name in names]
+    size = args.image_size
+    if len(names) == 2:
+        pair = dict(metres_per_unit=args.metres_per_unit)
+        try:
+            io.save_ros(paths, cameras, size, names=names, **pair)
+        except ValueError as error:  # (ROS's pair is the left camera first: the other order?)
+            try:
+                io.save_ros(paths[::-1], cameras[::-1], size, names=names[::-1], **pair)
+            except ValueError:
+                raise error from None
+            names = names[::-1]
+        say(f"a stereo pair, rectified: {names[0]} left, {names[1]} right")
+        return
+    for i, path in enumerate(paths):
+        io.save_ros(path, cameras[i], size, names=[names[i]])
+    if len(names) > 2:
+        say(
+            f"{len(names)} cameras, each on its own (a camera_info holds no pose; a rig of two "
+            "is written as a rectified stereo pair)"
+        )
 
 
 def _unique(names) -> list[str]:

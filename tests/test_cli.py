@@ -496,6 +496,54 @@ def test_convert_writes_kalibr_s_camchain_and_reads_it_back(files, capsys):
     assert not pathlib.Path("r.yaml").exists()
 
 
+def test_convert_writes_ros_camera_info_and_reads_a_stereo_pair_back(files, capsys):
+    """`--format ros` (a robotics user's trial: the last step needed Python): a file a camera in
+    the folder --out, a rig of two as the rectified pair `save_ros` writes, the left camera
+    first whatever the rig's order; `convert` reads the pair's two files back to the same
+    relative pose, in metres. One file alone holds no pose: refused, with what to do."""
+    R = np.stack([np.asarray(mc.rodrigues(np.array([0.0, 0.1, 0.0]))), np.eye(3)])
+    pair = mc.Camera(
+        [810.0, 800.0],
+        [810.0, 800.0],
+        [630.0, 640.0],
+        [410.0, 400.0],
+        R,
+        [[-100.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        dist=[[-0.1, 0.01, 0, 0, 0]] * 2,
+    )
+    mc.io.save_json("pair.json", pair, names=["right", "left"])  # (the right camera first)
+    args = ["convert", "pair.json", "--format", "ros", "--out", "ros", "--metres-per-unit", "0.001"]
+    with pytest.raises(SystemExit) as exit:
+        cli.main(args)
+    assert exit.value.code == 2 and "--format ros needs --image-size" in capsys.readouterr().err
+    assert cli.main([*args, "--image-size", "1280", "800"]) == 0
+    out = capsys.readouterr()
+    assert "2 cameras of pair.json written to ros (ros)" in out.out
+    assert "a stereo pair, rectified: left left, right right" in out.err
+    assert "camera_name: left" in pathlib.Path("ros/left.yaml").read_text()
+    assert (
+        cli.main(["convert", "ros/left.yaml", "ros/right.yaml", "--out", "back.json", "--quiet"])
+        == 0
+    )
+    back, names = mc.io.load_json("back.json")
+    assert names == ["left", "right"]
+    right_in_left = (pair.center[0] - pair.center[1]) @ np.asarray(pair.R[1]).T / 1000  # metres
+    np.testing.assert_allclose(back.center[1], right_in_left, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(back.K, pair.K[::-1], rtol=0, atol=1e-9)
+    assert cli.main(["convert", "ros/left.yaml", "--out", "one.json", "--quiet"]) == 2
+    assert "intrinsics without poses" in capsys.readouterr().err and not os.path.exists("one.json")
+    assert cli.main(["convert", "ros/left.yaml", "pair.json", "--out", "one.json", "--quiet"]) == 2
+    assert "not one of these: pair.json" in capsys.readouterr().err
+    three = jax.tree_util.tree_map(lambda a: np.concatenate([a, a[:1]]), pair)
+    mc.io.save_json("three.json", three, names=["a", "b", "c"])
+    options = ["--format", "ros", "--out", "each", "--image-size", "1280", "800"]
+    assert cli.main(["convert", "three.json", *options]) == 0
+    assert "3 cameras, each on its own" in capsys.readouterr().err
+    alone, _ = cli._load_rig("each/c.yaml")  # (an intrinsics file for calibrate-rig)
+    np.testing.assert_allclose(alone.K[0], pair.K[0], rtol=0, atol=1e-9)
+    assert np.isnan(np.asarray(alone.t)).all()
+
+
 def test_convert_keeps_a_json_rigs_statuses_rms_and_meta(files, capsys):
     """`convert` set every finite camera OK and dropped the RMS and meta (a POOR_FIT camera went
     into the YAML as a good one): JSON to JSON keeps them, YAML and COLMAP leave out the
