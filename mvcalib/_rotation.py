@@ -84,6 +84,7 @@ def rodrigues(rvec):
 
     ```
     """
+    rvec = jnp.asarray(rvec)  # (NumPy float64 without x64: float32, as JAX takes it, no warning)
     theta2 = jnp.sum(rvec * rvec, axis=-1)
     small = theta2 < 1e-12
     safe2 = jnp.where(small, 1.0, theta2)
