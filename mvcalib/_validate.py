@@ -41,11 +41,17 @@ def static_options(function: str, **options) -> None:
     ConcretizationTypeError)."""
     for name, value in options.items():
         if isinstance(value, jax.core.Tracer):
+            owner, _, method = function.rpartition(".")  # ("Camera", "rays") for a method
+            if owner:
+                this = owner.lower()
+                how = f"a Python value in your function, jax.jit(lambda {this}, pixels: {this}."
+                how += f"{method}(pixels, {name}=...))"
+            else:
+                how = f"jax.jit(functools.partial(mc.{function}, {name}=...)) or jax.jit("
+                how += f"mc.{function}, static_argnames='{name}')"
             raise TypeError(
                 f"`{name}` of mc.{function} is an option, not data, and it is traced here (an "
-                f"argument of a jax.jit-ed call): make it static, jax.jit(functools.partial("
-                f"mc.{function}, {name}=...)) or jax.jit(mc.{function}, static_argnames="
-                f"'{name}')."
+                f"argument of a jax.jit-ed call): make it static, {how}."
             )
 
 

@@ -225,6 +225,9 @@ def _misuses(rig):
          ValueError, r"is flat: one photo of a plane.*mc.label_grid.*mc.calibrate_planar"),
         (lambda: jax.jit(lambda n: mc.undistort_points(cameras, P, iterations=n))(20), TypeError,
          "`iterations` of mc.undistort_points is an option"),
+        (lambda: jax.jit(lambda n: cameras.rays(P, iterations=n))(20), TypeError,
+         r"`iterations` of mc.Camera.rays is an option.*jax.jit\(lambda camera, pixels: "
+         r"camera.rays\(pixels, iterations=\.\.\.\)\)\."),
     ]  # fmt: skip
 
 
