@@ -152,7 +152,7 @@ def calibrate(
       system (against its Frobenius norm) below which a camera is `Status.DEGENERATE`; default
       sqrt(machine epsilon).
     - `max_relative_rms`: a camera whose reprojection RMS exceeds this fraction of its
-      pixels' spread (median distance from their geometric median) is `Status.POOR_FIT`, with NaN
+      pixels' spread (median distance from their centre) is `Status.POOR_FIT`, with NaN
       parameters; default 0.05, more than twice what the DLT leaves of strong lens distortion.
       One wild correspondence is the usual cause. With `refine`, the refined camera is checked
       instead, over the points it kept (a robust loss's inliers), so that distortion the DLT
