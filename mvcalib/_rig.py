@@ -314,6 +314,9 @@ class RigCalibration(eqx.Module):
         free = set(self.parameter_names)
         held = {"intrinsics"} if not {"alpha_v", "u0", "v0"} & free else set()
         held |= {"pose"} if not {"rx", "tx"} & free else set()
+        if "intrinsics" in held:
+            for c in np.flatnonzero(np.asarray(self.status) == Status.POOR_FIT):
+                messages[c] += f"; {_HELD_INTRINSICS}"
         stopped = "" if int(self.result) == 0 else (
             f"; but the joint solve stopped after {int(self.iterations)} steps without "
             "converging (`print` the result for why): its parameters are not the least-squares "
@@ -1599,6 +1602,14 @@ def _systematic(in_rig: float, alone: float) -> bool:
     return in_rig > _ALONE_TIMES * max(alone, _ALONE_FLOOR)
 
 
+# Where a camera whose intrinsics were held fits poorly (a note, `POOR_FIT`'s message, the
+# reference's error).
+_HELD_INTRINSICS = (
+    "its intrinsics were held (`fix`): do they still fit this camera (zoom, focus, resolution)? "
+    "Calibrate with them free to compare"
+)
+
+
 def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
     """A note where a camera's frames fit `_ALONE_TIMES` times worse in the rig than each alone
     (`frames`: the medians `_in_rig_and_alone`), else where it fits `_MISFIT` times worse than
@@ -1612,10 +1623,7 @@ def _misfit_note(rms: float, others, held: set, frames=(np.nan, np.nan)) -> str:
             "differ from the rig's"
         )
     elif "intrinsics" in held:
-        cause = (
-            "its intrinsics were held (`fix`): do they still fit this camera (zoom, focus, "
-            "resolution)? Calibrate with them free to compare"
-        )
+        cause = _HELD_INTRINSICS
     else:
         cause = "its lens model (distortion terms) or its detections may not fit"
     in_rig, alone = frames
@@ -1991,9 +1999,11 @@ def calibrate_rig(
                     "more tilted to one another (and check that `pixels` is (C, F, N, 2), "
                     "cameras first)"
                 )
-            other = ""
+            other, fitted = "", {*result.parameter_names}
+            if status == Status.POOR_FIT and not {"alpha_v", "u0", "v0"} & fitted:
+                other = f"; {_HELD_INTRINSICS}"
             if C > 1 and (worst := _worst_pairs(result)):
-                other = f". The worst fits: {worst}"
+                other += f". The worst fits: {worst}"
                 if loss is None:
                     other += (
                         "; a robust loss (loss=mc.Huber(2.0)) sets aside a frame whose "

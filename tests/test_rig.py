@@ -1011,12 +1011,23 @@ def test_held_intrinsics_of_another_resolution_are_pointed_out_on_every_camera()
         cameras,
         (cameras.alpha_u * 1.5, cameras.alpha_v * 1.5, pixel(cameras.u0), pixel(cameras.v0)),
     )
-    result = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=big, fix=fix)
-    calibrated = np.flatnonzero(np.asarray(result.ok))
-    assert len(calibrated) >= 2
-    for c in calibrated:
-        message = result.messages()[c]
-        assert "times worse in the rig" in message and "intrinsics were held" in message, message
+    # Their own fits sit at their limit (5 % of their pixels' spread, to a percent): a camera
+    # comes out POOR_FIT, saying that its intrinsics were held, or calibrated with the note; a
+    # reference that is POOR_FIT raises, saying so too. Never OK without a word.
+    noted = 0
+    for reference in range(4):
+        try:
+            result = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=big, fix=fix,
+                                      reference=reference)  # fmt: skip
+        except ValueError as error:
+            assert f"reference camera {reference} cannot be calibrated" in str(error), error
+            assert "its intrinsics were held (`fix`)" in str(error), error
+            continue
+        for c, message in enumerate(result.messages()):
+            poor = int(result.status[c]) == mc.Status.POOR_FIT
+            assert "its intrinsics were held (`fix`)" in message or (not poor and c == reference)
+            noted += not poor
+    assert noted >= 1
     right = mc.calibrate_rig(o.target, o.pixels, o.mask, cameras=cameras, fix=fix)
     assert not any("times worse in the rig" in m for m in right.messages()), right.messages()
 
