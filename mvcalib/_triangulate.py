@@ -336,28 +336,10 @@ def _triangulate_set(cameras, pixels, mask, min_angle, refine, max_steps, chunk)
     return _sharding.chunked_map(run, (pixels[..., 0], pixels[..., 1], mask), chunk, axis=1)
 
 
-@jax.custom_jvp
 def _undistorted_at_zero(cameras: Camera, u, v):
     """`undistort_points` of the pixels `(C, N)` `u`, `v` where every coefficient is zero: the
-    pixels themselves, with undistortion's derivative there (`_one_step_from_zero`'s; the plain
-    identity had none in the coefficients: gradient descent on the distortion through
-    `triangulate`, from zero as usual, never moved, a JAX user's trial). The derivative is
-    computed only where one is asked for: a rig without distortion triangulates at the
-    identity's cost (the step itself cost 8 % of `triangulate`'s time, 100,000 points of 8
-    views)."""
-    return u, v
-
-
-@_undistorted_at_zero.defjvp
-def _undistorted_at_zero_jvp(primals, tangents):
-    _, tangent = jax.jvp(_one_step_from_zero, primals, tangents)
-    return primals[1:], tangent
-
-
-def _one_step_from_zero(cameras: Camera, u, v):
-    """One step `p - (distort(p) - p)` from the pixels: where every coefficient is zero, the
-    pixels themselves (exactly: the distortion's terms are zero), and its derivative in the
-    coefficients is undistortion's."""
+    pixels themselves (exactly: the distortion's terms are zero), as one step `p - (distort(p)
+    - p)` from them, whose derivative in the coefficients is undistortion's there."""
     y = (v - cameras.v0[:, None]) / cameras.alpha_v[:, None]
     x = (u - cameras.u0[:, None] - cameras.skew[:, None] * y) / cameras.alpha_u[:, None]
     xd, yd = _distort(x, y, cameras.dist[:, None])
@@ -387,7 +369,9 @@ def _triangulate_points(cameras, u, v, mask, min_angle, refine, max_steps):
         rays = jnp.moveaxis(cameras.rays(jnp.stack([pu, pv], -1)), -1, 0)
     else:
         # Undistortion (Newton steps per pixel) is a third of the work; skipped for rigs without
-        # distortion, where it is the identity, with undistortion's derivative there
+        # distortion, where it is the identity written as one step from it, which keeps its
+        # derivative in the coefficients (the plain identity had none: gradient descent on the
+        # distortion through `triangulate`, from zero as usual, never moved; a JAX user's trial)
         ideal = jax.lax.cond(
             jnp.any(cameras.dist != 0),
             lambda u, v: tuple(
