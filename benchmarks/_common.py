@@ -17,6 +17,14 @@ import numpy as np
 # Where every script writes its JSON; `run.py --results DIR` (and the smoke test) move it.
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
+# A script run as `python benchmarks/x.py` has benchmarks/ first on `sys.path`, and `import
+# mvcalib` found the installed package: an editable install of another checkout, so that an A/B
+# of two worktrees measured one checkout's code twice (2026-12-07). The scripts import this
+# module before mvcalib: the repository's own root goes first.
+_ROOT = str(Path(__file__).resolve().parents[1])
+if __name__ == "_common" and _ROOT not in sys.path:
+    sys.path.insert(0, _ROOT)
+
 
 def results_path(name: str) -> Path:
     """`RESULTS_DIR / name`, looked up at call time so that the suite can redirect it."""
@@ -75,6 +83,9 @@ def machine_info(*packages: str) -> dict:
         "cpu_count": os.cpu_count(),
         "python": sys.version.split()[0],
         **{name: version(name) for name in ("jax", "jaxlib", "mvcalib", "numpy", *packages)},
+        "mvcalib_path": str(Path(sys.modules["mvcalib"].__file__).parent)
+        if "mvcalib" in sys.modules
+        else None,  # (which checkout was measured)
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
         # The machine is shared: how busy it was when the run started (1, 5, 15 min averages).
