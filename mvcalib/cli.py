@@ -828,12 +828,9 @@ def _load_rig(path, *, record: bool = False):
     stored = []  # (a JSON rig's record, read with it)
     if path.is_dir():
         cameras, names = io.load_colmap(path)
-    elif suffix in (".yml", ".yaml") and _is_ros(path):
-        cameras, names = io.load_ros(path)
-    elif suffix in (".yml", ".yaml") and _is_kalibr(path):
-        cameras, names = io.load_kalibr(path)
     elif suffix in (".yml", ".yaml"):
-        cameras, names = io.load_opencv(path)
+        load = {"ros": io.load_ros, "kalibr": io.load_kalibr}.get(_yaml_kind(path), io.load_opencv)
+        cameras, names = load(path)
     elif suffix == ".toml":
         cameras, names = _load_toml_rig(path)
     elif suffix == ".csv":
@@ -889,7 +886,7 @@ def _load_rigs(paths):
     if len(paths) == 1:
         cameras, names, record = _load_rig(paths[0], record=True)
     else:
-        others = [str(p) for p in paths if not (p.is_file() and _is_ros(p))]
+        others = [str(p) for p in paths if _yaml_kind(p) != "ros"]
         if others:
             raise ValueError(
                 f"convert takes one rig, or the camera_info files of ROS cameras; not one of "
@@ -908,24 +905,20 @@ def _load_rigs(paths):
     return cameras, names, record
 
 
-def _is_ros(path: pathlib.Path) -> bool:
-    """Whether a YAML file is a ROS camera_info (top-level `image_width:` and a `camera_matrix:`
-    map), not OpenCV's FileStorage."""
+def _yaml_kind(path: pathlib.Path) -> str:
+    """Which rig a YAML file holds: `"ros"` (a camera_info: top-level `image_width:` and a
+    `camera_matrix:` map), `"kalibr"` (a camera chain: a top-level `cam0:` map with
+    `camera_model`), else `"opencv"` (FileStorage; also a file that cannot be read, whose reader
+    says why)."""
     try:
         text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError:
-        return False  # (the reader says why)
-    return all(re.search(rf"^{key}:", text, re.M) for key in ("image_width", "camera_matrix"))
-
-
-def _is_kalibr(path: pathlib.Path) -> bool:
-    """Whether a YAML file is Kalibr's camera chain (a top-level `cam0:` map with
-    `camera_model`), not OpenCV's FileStorage."""
-    try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
-    except OSError:
-        return False  # (the reader says why)
-    return bool(re.search(r"^cam0:\s*$", text, re.M)) and "camera_model:" in text
+        return "opencv"
+    if all(re.search(rf"^{key}:", text, re.M) for key in ("image_width", "camera_matrix")):
+        return "ros"
+    if re.search(r"^cam0:\s*$", text, re.M) and "camera_model:" in text:
+        return "kalibr"
+    return "opencv"
 
 
 def _load_toml_rig(path: pathlib.Path):
