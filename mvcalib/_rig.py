@@ -311,9 +311,7 @@ class RigCalibration(eqx.Module):
         alone = np.asarray(self.alone_rms)
         rms = _camera_rms(square, inliers if robust else used)
         calibrated = np.flatnonzero(np.asarray(self.status) == Status.OK)
-        free = set(self.parameter_names)
-        held = {"intrinsics"} if not {"alpha_v", "u0", "v0"} & free else set()
-        held |= {"pose"} if not {"rx", "tx"} & free else set()
+        held = _held(self.parameter_names)
         if "intrinsics" in held:
             for c in np.flatnonzero(np.asarray(self.status) == Status.POOR_FIT):
                 messages[c] += f"; {_HELD_INTRINSICS}"
@@ -1602,6 +1600,14 @@ def _systematic(in_rig: float, alone: float) -> bool:
     return in_rig > _ALONE_TIMES * max(alone, _ALONE_FLOOR)
 
 
+def _held(parameter_names) -> set:
+    """What a solve with these free parameters held: `"intrinsics"` (the principal point and
+    focal lengths; alpha_u alone may move with `fix="aspect_ratio"`), `"pose"`."""
+    free = set(parameter_names)
+    held = {"intrinsics"} if not {"alpha_v", "u0", "v0"} & free else set()
+    return held | ({"pose"} if not {"rx", "tx"} & free else set())
+
+
 # Where a camera whose intrinsics were held fits poorly (a note, `POOR_FIT`'s message, the
 # reference's error).
 _HELD_INTRINSICS = (
@@ -1999,8 +2005,8 @@ def calibrate_rig(
                     "more tilted to one another (and check that `pixels` is (C, F, N, 2), "
                     "cameras first)"
                 )
-            other, fitted = "", {*result.parameter_names}
-            if status == Status.POOR_FIT and not {"alpha_v", "u0", "v0"} & fitted:
+            other = ""
+            if status == Status.POOR_FIT and "intrinsics" in _held(result.parameter_names):
                 other = f"; {_HELD_INTRINSICS}"
             if C > 1 and (worst := _worst_pairs(result)):
                 other += f". The worst fits: {worst}"
