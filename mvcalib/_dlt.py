@@ -554,10 +554,10 @@ def poor_fit(rms, pixels, visible, max_relative_rms, sort=False):
     """
     rms, pixels = jax.lax.stop_gradient((rms, pixels))
     n = pixels.shape[-2]
-    if sort or n > _NETWORK_POINTS:
-        total = functools.partial(jnp.sum, axis=-1)
-    else:
+    if _by_network(n, sort):
         total = lambda x: sum(x[..., i] for i in range(n))  # noqa: E731
+    else:
+        total = functools.partial(jnp.sum, axis=-1)
     median = functools.partial(_masked_median, sort=sort)
     u, v = jnp.where(visible, pixels[..., 0], 0.0), jnp.where(visible, pixels[..., 1], 0.0)
 
@@ -586,7 +586,7 @@ def _masked_median(x, mask, sort=False):
     """
     n = x.shape[-1]
     count = jnp.sum(mask, axis=-1)
-    if sort or n > _NETWORK_POINTS:
+    if not _by_network(n, sort):
         ordered = _ordered(jnp.where(mask, x, jnp.inf))  # hidden entries rank last
 
         def pick(k):
@@ -610,6 +610,12 @@ def _masked_median(x, mask, sort=False):
 
 
 _NETWORK_POINTS = 32
+
+
+def _by_network(n: int, sort: bool) -> bool:
+    """Whether `n` points go one by one, elementwise over the batch (a sorting network for a
+    median): up to `_NETWORK_POINTS`, unless `sort` (a small program, compiled quickly)."""
+    return not sort and n <= _NETWORK_POINTS
 
 
 def _middle_ranks(n):
