@@ -124,6 +124,7 @@ def _robust_weights(loss, s):
 class _SecantLMState(eqx.Module):
     residual: Array  # at the current point, flattened
     jacobian: Array  # (n, m): transposed, one row per parameter
+    normal: Array  # (n, n): jacobian @ jacobian.T
     gradient: Array  # jacobian @ residual
     curvature: Array  # (n, n): the secant estimate of sum_i r_i Hess(r_i)
     augmented: Array  # whether the next step's model adds `curvature` (else Gauss–Newton)
@@ -131,6 +132,7 @@ class _SecantLMState(eqx.Module):
     damping: Array
     growth: Array  # the factor of the damping's next increase
     aux: PyTree
+    step: Array  # the next trial's step from the current point (zero before the first)
     done: Array
     fresh: Array  # whether no step was taken yet (the fields above are placeholders then)
 
@@ -178,8 +180,11 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
     creeps (planar views without wild points: 25 steps against least squares' 6; 7 with the
     model).
 
-    Its first step evaluates the start (a step of length zero, always accepted), as optimistix's
-    own solvers do; `optx.least_squares` counts it among the steps.
+    Each step evaluates the trial its predecessor solved for and solves for the next; the first
+    evaluates the start (a trial of length zero, always accepted), as optimistix's own solvers
+    do. A next trial already shorter than the tolerance after an accepted one ends the solve
+    without being evaluated (the point returned is the last one evaluated, within `rtol`
+    standard errors of it). `optx.least_squares` counts the steps, one evaluation each.
 
     **Example:**
 
@@ -236,6 +241,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         return _SecantLMState(
             residual=r,
             jacobian=jnp.zeros((n, r.shape[0]), r.dtype),
+            normal=jnp.zeros((n, n), r.dtype),
             gradient=jnp.zeros(n, r.dtype),
             curvature=jnp.zeros((n, n), y_flat.dtype),
             augmented=jnp.asarray(False),
@@ -243,6 +249,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
             damping=jnp.asarray(self.initial_damping, y_flat.dtype),
             growth=jnp.asarray(10.0, y_flat.dtype),
             aux=jax.tree_util.tree_map(zeros, aux_struct),
+            step=jnp.zeros_like(y_flat),
             done=jnp.asarray(False),
             fresh=jnp.asarray(True),
         )
@@ -251,23 +258,16 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         del tags
         y, unravel = ravel_pytree(y)
         fn = _tree_fn(fn, unravel)
-        r, Jt, S, cost = state.residual, state.jacobian, state.curvature, state.cost
-        H = Jt @ Jt.T
-        g = state.gradient
-        diag = jnp.diagonal(H)
-        diag = jnp.maximum(diag, jnp.finfo(y.dtype).eps * jnp.max(diag))
-        A = jnp.where(state.augmented, H + S, H)
-        # The first step evaluates the start (a step of length zero, always accepted), as
-        # optimistix's own solvers do, and counts as a step: the compiled program then holds one
-        # copy of the residuals and their Jacobian, not two (`refine` of 1024 cameras of 19
-        # points compiled in 0.38-0.43 against 0.64 s; the refine benchmark's 256 cameras in the
-        # user's `jit`, 1.7-2.0 against 2.2-2.3 s)
-        fresh = state.fresh
-        dy = jax.lax.cond(
-            fresh,
-            lambda: jnp.zeros_like(y),
-            lambda: -_definite_solve(A + state.damping * jnp.diag(diag), g[:, None])[:, 0],
-        )
+        r, Jt, H, g = state.residual, state.jacobian, state.normal, state.gradient
+        S, cost, dy, fresh = state.curvature, state.cost, state.step, state.fresh
+        # Each step evaluates the trial its predecessor solved for, then solves for the next one.
+        # The first evaluates the start (a trial of length zero, always accepted), as
+        # optimistix's own solvers do: the compiled program holds one copy of the residuals and
+        # their Jacobian, not two (`refine` of 1024 cameras of 19 points compiled in 0.38-0.43
+        # against 0.64 s). A trial that is already short is not evaluated (below): as many
+        # evaluations and steps as with the start evaluated by `init` (6/8/16 on the refine
+        # benchmark; 7/9/17 when the first step spent one on the start and every step solved
+        # before it evaluated).
         r_new, Jt_new, cost_new, aux_new = self._evaluate(fn, y + dy, args, options, unravel)
         cost_new = jnp.where(jnp.isnan(cost_new), jnp.inf, cost_new)  # not definite, or NaN
         accept = (cost_new < cost) | fresh
@@ -291,12 +291,16 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         S_new = jnp.where(jnp.abs(ys) > _TINY, S_new, sizing * S)
 
         dof = jnp.maximum(r.shape[0] - y.shape[0], 1)
+        short = lambda dy, H, cost: (  # noqa: E731
+            (dy @ H @ dy <= self.rtol**2 * cost / dof) | (self.norm(dy) <= self.atol)
+        )
         tolerance = self.rtol**2 * cost_new / dof
-        short = (dy @ H @ dy <= tolerance) | (self.norm(dy) <= self.atol)
         exact = ~accept & (jnp.abs(cost_new - cost) <= 64 * jnp.finfo(y.dtype).eps * cost)
         predicted = jnp.where(state.augmented, augmented, gauss_newton)
         stalled = ~accept & (jnp.maximum(predicted, jnp.abs(actual)) <= tolerance)
-        done = jnp.where(fresh, cost_new == 0, (accept & short) | exact | stalled | (cost == 0))
+        done = jnp.where(
+            fresh, cost_new == 0, (accept & short(dy, H, cost_new)) | exact | stalled | (cost == 0)
+        )
         damping = jnp.where(
             accept,
             jnp.where(good, jnp.maximum(0.1 * state.damping, _MIN_DAMPING), state.damping),
@@ -304,16 +308,30 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         )
         damping = jnp.where(fresh, state.damping, damping)
         keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        Jt, r, g, cost = keep(Jt_new, Jt), keep(r_new, r), keep(g_new, g), keep(cost_new, cost)
+        H, S = keep(Jt_new @ Jt_new.T, H), jnp.where(accept & ~fresh, S_new, S)
+        model = ~fresh & (jnp.abs(actual - augmented) < jnp.abs(actual - gauss_newton))
+
+        # the next trial, `(J^T J [+ S] + damping diag(J^T J)) dy = -J^T r`; one already short
+        # after an accepted trial ends the solve here (after a rejection, the raised damping
+        # shortens it)
+        diag = jnp.diagonal(H)
+        diag = jnp.maximum(diag, jnp.finfo(y.dtype).eps * jnp.max(diag))
+        A = jnp.where(model, H + S, H) + damping * jnp.diag(diag)
+        dy_next = -_definite_solve(A, g[:, None])[:, 0]
+        done = done | (accept & short(dy_next, H, cost))
         state = _SecantLMState(
-            residual=keep(r_new, r),
-            jacobian=keep(Jt_new, Jt),
-            gradient=keep(g_new, g),
-            curvature=jnp.where(accept & ~fresh, S_new, S),
-            augmented=~fresh & (jnp.abs(actual - augmented) < jnp.abs(actual - gauss_newton)),
-            cost=keep(cost_new, cost),
+            residual=r,
+            jacobian=Jt,
+            normal=H,
+            gradient=g,
+            curvature=S,
+            augmented=model,
+            cost=cost,
             damping=damping,
             growth=jnp.where(accept, 10.0, 2.0 * state.growth),
             aux=jax.tree_util.tree_map(keep, aux_new, state.aux),
+            step=dy_next,
             done=done,
             fresh=jnp.asarray(False),
         )
