@@ -182,9 +182,10 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
 
     Each step evaluates the trial its predecessor solved for and solves for the next; the first
     evaluates the start (a trial of length zero, always accepted), as optimistix's own solvers
-    do. A next trial already shorter than the tolerance after an accepted one ends the solve
-    without being evaluated (the point returned is the last one evaluated, within `rtol`
-    standard errors of it). `optx.least_squares` counts the steps, one evaluation each.
+    do. A next trial already shorter than the tolerance after an accepted one is taken without
+    being evaluated, and ends the solve (the final state's residuals and Jacobian are then those
+    of the point it left, within `rtol` standard errors). `optx.least_squares` counts the steps,
+    one evaluation each.
 
     **Example:**
 
@@ -264,7 +265,7 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         # The first evaluates the start (a trial of length zero, always accepted), as
         # optimistix's own solvers do: the compiled program holds one copy of the residuals and
         # their Jacobian, not two (`refine` of 1024 cameras of 19 points compiled in 0.38-0.43
-        # against 0.64 s). A trial that is already short is not evaluated (below): as many
+        # against 0.64 s). A trial that is already short is taken unevaluated (below): as many
         # evaluations and steps as with the start evaluated by `init` (6/8/16 on the refine
         # benchmark; 7/9/17 when the first step spent one on the start and every step solved
         # before it evaluated).
@@ -313,13 +314,13 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
         model = ~fresh & (jnp.abs(actual - augmented) < jnp.abs(actual - gauss_newton))
 
         # the next trial, `(J^T J [+ S] + damping diag(J^T J)) dy = -J^T r`; one already short
-        # after an accepted trial ends the solve here (after a rejection, the raised damping
-        # shortens it)
+        # after an accepted trial is taken without being evaluated, and the last (after a
+        # rejection, the raised damping shortens it)
         diag = jnp.diagonal(H)
         diag = jnp.maximum(diag, jnp.finfo(y.dtype).eps * jnp.max(diag))
         A = jnp.where(model, H + S, H) + damping * jnp.diag(diag)
         dy_next = -_definite_solve(A, g[:, None])[:, 0]
-        done = done | (accept & short(dy_next, H, cost))
+        last = accept & short(dy_next, H, cost)
         state = _SecantLMState(
             residual=r,
             jacobian=Jt,
@@ -332,10 +333,10 @@ class SecantLM(optx.AbstractLeastSquaresSolver):
             growth=jnp.where(accept, 10.0, 2.0 * state.growth),
             aux=jax.tree_util.tree_map(keep, aux_new, state.aux),
             step=dy_next,
-            done=done,
+            done=done | last,
             fresh=jnp.asarray(False),
         )
-        return unravel(keep(y + dy, y)), state, state.aux
+        return unravel(keep(y + dy, y) + jnp.where(last, dy_next, 0.0)), state, state.aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, options, tags
