@@ -984,8 +984,9 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
 
 def _at_optimum(residuals, jacobian_t, y, args, state):
     """The flat residuals and their transposed Jacobian at the solution `y`: from `SecantLM`'s
-    final state, which holds them at that point (computing them again would put a second copy of
-    the Jacobian into the compiled program, a third of its size), and
+    final state, which holds them at that point or, where its last trial was taken unevaluated,
+    at the point that trial left, within `rtol` standard errors (computing them again would put
+    a second copy of the Jacobian into the compiled program, a third of its size), and
     differentiated as `residuals(y, args)` and `jacobian_t(y, args)` are."""
     if not isinstance(state, _SecantLMState):
         return residuals(y, args).reshape(-1), jacobian_t(y, args)
