@@ -224,9 +224,10 @@ def quick_compiler_options() -> dict:
     options: fully optimised by default, which for a whole calibration takes far longer than it
     runs. These are the options mvcalib's own small programs are compiled with (LLVM without
     optimisation, the module in one piece, XLA's older CPU emitters), those this XLA knows, on a
-    CPU; none elsewhere. Measured (2 cores, float64): `jax.grad` through `calibrate(...,
-    refine=True)` of 4 cameras, first call 4.9 s against 20.5 s, warm 4.0 against 1.9 ms; through
-    `calibrate_rig` of 4 cameras and 40 frames, 7.6 s against 32.4 s, warm 2.07 against 1.55 s.
+    CPU; none elsewhere. Measured (2 cores, float64, fresh processes): `jax.jit(jax.grad(...))`
+    through `calibrate(..., refine=True)` of 4 cameras, first call 8.8-9.9 s against 16.6 s, warm
+    3.7-4.6 against 2.1-2.4 ms; through `calibrate_rig` of 4 cameras and 40 frames, 11.6-12.4 s
+    against 19.9 s, warm 2.1-2.2 against 1.06 s.
     Where the program runs many times (an optimisation loop of thousands of steps), the
     default's faster code may repay its compile.
 
