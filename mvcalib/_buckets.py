@@ -225,8 +225,8 @@ def quick_compiler_options() -> dict:
     runs. These are the options mvcalib's own small programs are compiled with (LLVM without
     optimisation, the module in one piece, XLA's older CPU emitters), those this XLA knows, on a
     CPU; none elsewhere. Measured (2 cores, float64, fresh processes): `jax.jit(jax.grad(...))`
-    through `calibrate(..., refine=True)` of 4 cameras, first call 8.8-9.9 s against 16.6 s, warm
-    3.7-4.6 against 2.1-2.4 ms; through `calibrate_rig` of 4 cameras and 40 frames, 11.6-12.4 s
+    through `calibrate(..., refine=True)` of 4 cameras, first call 5.5-5.6 s against 9.75 s, warm
+    2.9-3.1 against 1.34 ms; through `calibrate_rig` of 4 cameras and 40 frames, 11.6-12.4 s
     against 19.9 s, warm 2.1-2.2 against 1.06 s.
     Where the program runs many times (an optimisation loop of thousands of steps), the
     default's faster code may repay its compile.

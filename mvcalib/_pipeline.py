@@ -258,6 +258,8 @@ def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> C
     # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
     # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
     seed = result.cameras  # (`refine` zeroes its skew unless it is estimated)
+    if _seed_is_forgotten(options):
+        seed = jax.lax.stop_gradient(seed)
     if seed.batch_shape:
         refined = _refine.refine(seed, world, pixels, mask, **options)
     else:
@@ -267,6 +269,29 @@ def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> C
         )
         refined = jax.tree_util.tree_map(lambda x: x[0], refined)
     return _checked(result, refined, world, pixels, mask, max_relative_rms, quick=quick)
+
+
+def _seed_is_forgotten(options: dict) -> bool:
+    """Whether `refine(**options)` keeps nothing of the DLT's seed: every parameter it holds is
+    a constant of that seed (a zero-skew model's skew, the distortion coefficients, zero), none
+    is held at the seed's value (`fix` naming intrinsics, pose or skew; the aspect ratio). The
+    refined cameras are then the optimum's alone, whose derivatives do not depend on where the
+    solve started, and under `grad` the seed's are not carried through the solve only to cancel
+    (`jax.grad` of `calibrate(..., refine=True)` of 4 cameras, fresh processes: the first call
+    16.9-17.1 s against 19.8-20.5 s; in `jax.jit` 9.75 against 16.3 s, warm 1.34 against 2.27 ms;
+    the gradient within 1e-9 relative, what the cancelling left)."""
+    from . import _refine
+
+    fix = options.get("fix", ())
+    fix = (fix,) if isinstance(fix, str) else tuple(fix)
+    try:
+        free = _refine._free_parameters(options.get("distortion"), fix, options.get("skew", False))
+    except (ValueError, TypeError):  # (`refine` says what is wrong)
+        return False
+    names = _refine.PARAMETERS
+    held = {name for i, name in enumerate(names) if i not in free}
+    constant = set(_refine.DISTORTION) | ({"skew"} - set(fix))
+    return not getattr(free, "tied", False) and held <= constant
 
 
 def _refined_bucket(
