@@ -560,13 +560,9 @@ def test_refine_rig_matrix_free_gradient_equals_the_dense_one(monkeypatch):
     np.testing.assert_allclose(free, dense, atol=1e-6 * float(jnp.max(jnp.abs(dense))))
 
 
-@pytest.mark.parametrize("whole", [True, False])
-def test_calibrate_planar_is_differentiable_through_its_optimum(whole):
-    # Zhang's method on four views of a 7 x 5 grid with radial distortion. The fixed parameters
-    # (skew, p1, p2, k3) are zero columns of the Jacobian, which made the implicit derivative's
-    # linear solve return NaN (fixed: a least-squares solve). One point hidden. `whole`: an
-    # optimistix solver on the whole problem; else the default step, which eliminates the views'
-    # poses (`_planar._refine_as_rig`, the fixed parameters pinned by residuals of their own).
+def _planar_scene():
+    """Four views of a 7 x 5 grid (30 mm) with radial distortion and 0.3 px of noise, one point
+    hidden: `(grid, pixels, mask)`."""
     grid = np.array([[x, y] for y in range(5) for x in range(7)], float) * 30.0
     views = []
     for rvec, centre in (
@@ -582,11 +578,24 @@ def test_calibrate_planar_is_differentiable_through_its_optimum(whole):
     pixels = np.stack(views) + 0.3 * np.random.default_rng(3).standard_normal((4, len(grid), 2))
     mask = np.ones(pixels.shape[:2], bool)
     mask[1, 5] = False
+    return grid, pixels, mask
+
+
+@pytest.mark.parametrize(("whole", "fix"), [(True, ()), (False, ()), (False, "principal_point")])
+def test_calibrate_planar_is_differentiable_through_its_optimum(whole, fix):
+    # Zhang's method on four views of a 7 x 5 grid with radial distortion. The fixed parameters
+    # (skew, p1, p2, k3) are zero columns of the Jacobian, which made the implicit derivative's
+    # linear solve return NaN (fixed: a least-squares solve). One point hidden. `whole`: an
+    # optimistix solver on the whole problem; else the default step, which eliminates the views'
+    # poses (`_planar._refine_as_rig`, the fixed parameters pinned by residuals of their own).
+    # With the principal point held at the closed form's, the closed form's derivatives reach
+    # the answer through it (else they are not carried: `_planar._forgets_its_start`).
+    grid, pixels, mask = _planar_scene()
     solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12) if whole else None
     w = np.random.default_rng(1).standard_normal(4)
 
     def f(px):
-        out = mc.calibrate_planar(grid, px, mask, solver=solver)
+        out = mc.calibrate_planar(grid, px, mask, solver=solver, fix=fix)
         c = out.camera
         return jnp.vdot(w, jnp.stack([out.K[0, 0], out.K[1, 2], c.dist[0, 0], c.t[1, 2]])), out
 
