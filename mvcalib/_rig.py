@@ -1349,23 +1349,23 @@ def _uncertainty(y, args, n: _Normal, residuals, *, free, loss):
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
 def _start(target, plane, pixels, mask, cameras, reference, rcond, max_relative_rms, *, planar,
            given, free, loss, max_steps):  # fmt: skip
-    """`_initialise`, compiled: the rig before the joint solve (no derivatives flow through it)."""
-    return jax.lax.stop_gradient(
-        _initialise(
-            target,
-            plane,
-            pixels,
-            mask,
-            cameras,
-            reference,
-            rcond,
-            max_relative_rms,
-            planar=planar,
-            given=given,
-            free=free,
-            loss=loss,
-            max_steps=max_steps,
-        )
+    """`_initialise`, compiled: the rig before the joint solve. No derivatives flow through
+    it: `calibrate_rig` passes traced inputs through `stop_gradient` before the call, so that
+    under `grad` this program is not linearised."""
+    return _initialise(
+        target,
+        plane,
+        pixels,
+        mask,
+        cameras,
+        reference,
+        rcond,
+        max_relative_rms,
+        planar=planar,
+        given=given,
+        free=free,
+        loss=loss,
+        max_steps=max_steps,
     )
 
 
