@@ -1294,7 +1294,7 @@ def refine(
     options = dict(free=free, loss=loss, solver=solver, max_steps=max_steps)
     if not bucketed:
         quick = math.prod(mask.shape) <= _buckets.COMPACT
-        return _refine_all(cameras, world, pixels, mask, quick=quick, **options)
+        return _refine_side_by_side(cameras, world, pixels, mask, quick=quick, **options)
     n_points, rig_shape = pixels.shape[-2], cameras.batch_shape
     (world, pixels, mask), batch = _buckets.correspondences(world, pixels, mask)
     n_cameras = pixels.shape[0]
@@ -1306,9 +1306,33 @@ def refine(
 
     cameras = jax.tree_util.tree_map(flat, cameras)
     quick = n_cameras * pixels.shape[1] <= _buckets.COMPACT
-    out = _buckets.cut(_refine_all(cameras, world, pixels, mask, quick=quick, **options), batch)
+    out = _refine_side_by_side(cameras, world, pixels, mask, quick=quick, **options)
+    out = _buckets.cut(out, batch)
     point_arrays = lambda r: (r.inliers, r.report.residuals, r.report.mask)  # noqa: E731
     return _buckets.cut_points(out, point_arrays, n_points, len(batch))
+
+
+def _refine_side_by_side(cameras, world, pixels, mask, *, quick, **options) -> Refinement:
+    """`_refine_all`, called from Python with a rig of one camera axis, in equal pieces of it
+    run side by side on the CPU's cores (`_buckets.pieces`): each camera's problem is its own,
+    solved one after another (`one_per_step`), so the pieces' cameras are the whole's to the
+    last bit (and the reports' RMS to rounding: a sum vectorised across the cameras)."""
+    k = _buckets.pieces(mask.shape[0]) if mask.ndim == 2 and _buckets.applies(
+        cameras, world, pixels, mask) else 1  # fmt: skip
+    if k == 1:
+        return _refine_all(cameras, world, pixels, mask, quick=quick, **options)
+    size = mask.shape[0] // k
+
+    def piece(i):
+        s = slice(i * size, (i + 1) * size)
+        cut = lambda x: np.asarray(x)[s]  # noqa: E731
+        shared = np.ndim(world) == 2
+        return (jax.tree_util.tree_map(cut, cameras), world if shared else cut(world),
+                cut(pixels), cut(mask))  # fmt: skip
+
+    out = _refine_all.across([piece(i) for i in range(k)], quick=quick, **options)
+    join = lambda *xs: jax.device_put(np.concatenate(xs))  # noqa: E731
+    return jax.tree_util.tree_map(join, *out)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
