@@ -20,6 +20,11 @@ skew and k3 = 0 held fixed). The problems of C = 16 and 64 cameras are the first
   with `jax.block_until_ready` on the returned `Refinement`.
   Besides the optimum, each call also computes the per-camera covariance of the parameters and
   the reprojection report, which the SciPy loop does not.
+- **mvcalib, from Python** (`mvcalib_eager` in the JSON): the same `mvcalib.refine` called as a
+  user calls it outside a `jax.jit` of their own: its programs compiled by mvcalib (LLVM
+  without optimisation below `mvcalib._buckets.COMPACT` camera-points, which 256 x 108 is),
+  the rig run in equal pieces, one per core, side by side (`mvcalib._buckets.pieces`). Its
+  cameras are compared with the jitted call's.
 - **scipy lm / scipy trf**: a Python loop over the cameras calling
   `scipy.optimize.least_squares` (`method="lm"`, MINPACK; `method="trf"`) with
   `x_scale="jac"` and `ftol = xtol = gtol = 1e-12` on the same parametrisation and seed:
@@ -144,6 +149,11 @@ def mvcalib_refine(seed, world, pixels, mask):
     return jax.block_until_ready(_refine_jit(seed, world, pixels, mask))
 
 
+def mvcalib_refine_eager(seed, world, pixels, mask):
+    """The same call from Python, as a user makes it outside a `jax.jit` of their own."""
+    return jax.block_until_ready(mc.refine(seed, world, pixels, mask))
+
+
 # ---------------------------------------------------------------------------------- SciPy
 def scipy_inputs(world, pixels, mask, seed):
     """Per camera: (visible world points, their pixels, seed vector x0), as NumPy arrays."""
@@ -224,7 +234,10 @@ def bench_one(problem, C, *, quick):
     """Warm up, time and compare the implementations on the first C cameras of the rig."""
     world, pixels, mask, seed = subset(problem, C)
     problems = scipy_inputs(world, pixels, mask, seed)
-    fns = {"mvcalib": lambda: mvcalib_refine(seed, world, pixels, mask)}
+    fns = {
+        "mvcalib": lambda: mvcalib_refine(seed, world, pixels, mask),
+        "mvcalib_eager": lambda: mvcalib_refine_eager(seed, world, pixels, mask),
+    }
     for method in SCIPY_METHODS:
         fns[f"scipy_{method}"] = lambda method=method: scipy_loop(problems, method)
 
@@ -237,7 +250,8 @@ def bench_one(problem, C, *, quick):
 
     if quick:  # the ratio's two sides by the median of three calls (each after an untimed one:
         # `measure`'s warm-up); trf, the slowest, once
-        stats = measure({k: fns[k] for k in ("mvcalib", "scipy_lm")}, min_time=0.0, rounds=3)
+        timed = ("mvcalib", "mvcalib_eager", "scipy_lm")
+        stats = measure({k: fns[k] for k in timed}, min_time=0.0, rounds=3)
         stats |= measure({"scipy_trf": fns["scipy_trf"]}, min_time=0.0, rounds=1)
     else:
         stats = measure(fns, min_time=1.4, rounds=7)
@@ -283,6 +297,11 @@ def bench_one(problem, C, *, quick):
         row[f"{name}_repeats"] = st["repeats"]
         row[f"{name}_first_call_s"] = first_call[name]
     row["mvcalib_compile_s"] = first_call["mvcalib"] - stats["mvcalib"]["median"]
+    row["mvcalib_eager_compile_s"] = first_call["mvcalib_eager"] - stats["mvcalib_eager"]["median"]
+    eager = outputs["mvcalib_eager"]
+    row["mvcalib_eager_cameras_max_rel_diff"] = float(
+        np.max(np.abs(np.asarray(eager.cameras.alpha_u) / np.asarray(cam.alpha_u) - 1))
+    )
     row["mvcalib_peak_mb_xla"] = xla_peak_mb(_refine_jit, seed, world, pixels, mask)
     for method in SCIPY_METHODS:  # a loop's peak is one camera's: 16 cameras show it
         row[f"scipy_{method}_peak_mb_tracemalloc"] = tracemalloc_peak_mb(
@@ -292,6 +311,9 @@ def bench_one(problem, C, *, quick):
         row[f"ratio_scipy_{method}_over_mvcalib"] = (
             stats[f"scipy_{method}"]["median"] / stats["mvcalib"]["median"]
         )
+    row["ratio_scipy_lm_over_mvcalib_eager"] = (
+        stats["scipy_lm"]["median"] / stats["mvcalib_eager"]["median"]
+    )
     # Cost per step: a vmapped solve runs every camera for the batch's largest number of steps;
     # one camera per step (on one CPU device) and the loop pay each camera's own.
     chunk = 1 if mc._refine.one_per_step(C) else C  # noqa: SLF001 (how the solve is batched)
@@ -330,6 +352,12 @@ def print_table(rows, jacobian_error):
             f"{r['ratio_scipy_lm_over_mvcalib']:>8.2f} {r['ratio_scipy_trf_over_mvcalib']:>8.2f} "
             f"{r['mvcalib_total_s']:>8.3f} {r['scipy_lm_total_s']:>7.3f} "
             f"{r['scipy_trf_total_s']:>7.3f} {r['mvcalib_first_call_s']:>9.1f}"
+        )
+    for r in rows:
+        print(
+            f"{r['n_cameras']:>4} {r['mvcalib_eager_ms_per_camera']:>9.2f}  <- mc.refine called "
+            f"from Python: lm/mvcalib {r['ratio_scipy_lm_over_mvcalib_eager']:.2f}, "
+            f"{r['mvcalib_eager_total_s']:.3f} s, 1st call {r['mvcalib_eager_first_call_s']:.1f} s"
         )
     print()
     header = (
@@ -376,7 +404,9 @@ def print_table(rows, jacobian_error):
         )
     print()
     print("mvcalib:    mc.refine (SecantLM, a camera at a time on a CPU; also covariance, report),")
-    print("            median wall time per call, per camera and in total.")
+    print("            in the caller's jax.jit; median wall time a call, a camera and in total.")
+    print("            <-: the same call from Python (the rig in pieces, one per core; LLVM -O0")
+    print("            below mvcalib._buckets.COMPACT camera-points).")
     print("lm, trf:    Python loop of scipy.optimize.least_squares(method=..., x_scale='jac',")
     print("            tol 1e-12) on cv2.projectPoints residuals with its analytic Jacobian")
     print(f"            (max rel. error vs central differences {jacobian_error:.0e}).")
