@@ -1314,25 +1314,14 @@ def refine(
 
 def _refine_side_by_side(cameras, world, pixels, mask, *, quick, **options) -> Refinement:
     """`_refine_all`, called from Python with a rig of one camera axis, in equal pieces of it
-    run side by side on the CPU's cores (`_buckets.pieces`): each camera's problem is its own,
-    solved one after another (`one_per_step`), so the pieces' cameras are the whole's to the
+    run side by side on the CPU's cores (`_buckets.in_pieces`): each camera's problem is its
+    own, solved one after another (`one_per_step`), so the pieces' cameras are the whole's to the
     last bit (and the reports' RMS to rounding: a sum vectorised across the cameras)."""
-    k = _buckets.pieces(mask.shape[0]) if mask.ndim == 2 and _buckets.applies(
-        cameras, world, pixels, mask) else 1  # fmt: skip
-    if k == 1:
+    if mask.ndim != 2:
         return _refine_all(cameras, world, pixels, mask, quick=quick, **options)
-    size = mask.shape[0] // k
-
-    def piece(i):
-        s = slice(i * size, (i + 1) * size)
-        cut = lambda x: np.asarray(x)[s]  # noqa: E731
-        shared = np.ndim(world) == 2
-        return (jax.tree_util.tree_map(cut, cameras), world if shared else cut(world),
-                cut(pixels), cut(mask))  # fmt: skip
-
-    out = _refine_all.across([piece(i) for i in range(k)], quick=quick, **options)
-    join = lambda *xs: jax.device_put(np.concatenate(xs))  # noqa: E731
-    return jax.tree_util.tree_map(join, *out)
+    axes = (0, None if np.ndim(world) == 2 else 0, 0, 0)
+    args = (cameras, world, pixels, mask)
+    return _buckets.in_pieces(_refine_all, args, axes, quick=quick, **options)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
