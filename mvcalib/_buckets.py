@@ -17,9 +17,10 @@ may then stop a step apart: in a trial, the same refinement eager (padded) and i
 `jax.jit` (not) differed by up to 7e-7 (relative) and one step. A padded camera is a copy of the
 last camera, whose answer does not depend on the others in its batch (inverse iteration goes on
 while any camera does, the others keeping their vectors); refinement sees it as a camera without a
-seed, whose problem ends at once. `calibrate_rig` pads its frames and `calibrate_planar` its views,
-in coarser buckets (a recording's length changes with every recording), with frames or views nobody
-saw, and `refine_rig` its cameras and points, with cameras that see nothing and points nobody sees,
+seed, whose problem ends at once. `calibrate_rig` pads its frames and cameras and
+`calibrate_planar` its views, in coarser buckets (a recording's length changes with every
+recording), with frames or views nobody saw and cameras that see nothing, and `refine_rig` its
+cameras and points, with cameras that see nothing and points nobody sees,
 which their solves hold still: these joint solves round differently, so the answer is the same to
 the solves' tolerance (steps of 1e-5 standard errors), not to the last digit. The padding is done
 on the host in NumPy (on a CPU that is the arrays' own memory), so that a new shape compiles

@@ -93,6 +93,10 @@ QUICK_SIZE = 2**17
 # other, took 2.8, 2.3, 2.2 and 2.5 s, 0.2 s of each running; now 2.7, 0.2, 2.5 and 0.2 s. The
 # warm calls pay for the padded frames: 0.18 against 0.15 s (40 frames), 0.22 against 0.17 (50).
 MIN_FRAMES, FRAME_BITS = 32, 2
+# ... and its cameras up to `_buckets.size(C, bits=CAMERA_BITS)` (1-4 as they are, then 6, 8, 12,
+# 16, 24, ...), with cameras that see nothing; the solves' outputs without a camera axis:
+CAMERA_BITS = 2
+_RIG_WIDE = frozenset({"target_poses", "rms", "frame_rms", "iterations", "result"})
 # The results with a frame axis, and where it is (the rest have none).
 _FRAME_AXIS = dict(target_poses=0, frame_rms=0, alone_rms=1, own_poses=1, residuals=1, observed=1,
                    used=1, inliers=1, poor_pairs=1)  # fmt: skip
@@ -1970,13 +1974,23 @@ def calibrate_rig(
             solve_reference = int(reference)
         else:
             solve_reference = 0 if not concrete else int(np.argmax(mask.any(-1).sum(1)))
-        # (NumPy for concrete arrays: no program of their own; their frames padded to a bucket
-        # with frames nobody saw, so that a recording of another length reuses the program)
+        # (NumPy for concrete arrays: no program of their own; their frames and cameras padded
+        # to a bucket with frames nobody saw and cameras that see nothing, so that a recording
+        # of another length, or a rig of another size, reuses the programs)
         frames = _buckets.size(F, MIN_FRAMES, bits=FRAME_BITS) if concrete else F
-        padded = lambda x, fill: _buckets.pad(x, 1, frames, fill=fill) if concrete else x  # noqa: E731
+        rig = _buckets.size(C, bits=CAMERA_BITS) if concrete else C
+
+        def padded(x, fill):
+            return _buckets.pad(_buckets.pad(x, 1, frames, fill=fill), 0, rig, fill=fill)
+
+        if not concrete:
+            padded = lambda x, fill: x  # noqa: E731
         points, image = xp.asarray(target, dtype), padded(xp.asarray(pixels, dtype), 0.0)
         mask, observed = padded(mask, False), padded(observed, False)
-        quick = C * frames * N <= QUICK_SIZE
+        given = cameras
+        if concrete and cameras is not None:  # (the padding's: copies of the last camera)
+            given = jax.tree_util.tree_map(lambda x: _buckets.pad(x, 0, rig), cameras)
+        quick = rig * frames * N <= QUICK_SIZE
         options = dict(free=free, loss=loss, max_steps=max_steps, quick=quick)
         # (the reference camera as an array, not a constant of the programs: a rig calibrated
         # from another reference, or `reference="target"` on another recording, compiles nothing)
@@ -1985,7 +1999,7 @@ def calibrate_rig(
         # values, so that its program is not linearised (the first `jax.grad` of a camera's
         # position by the pixels, 4 cameras x 40 frames, fresh process: 20.0-20.8 against
         # 24.1-24.3 s)
-        start_inputs = (points, plane, image, mask, cameras)
+        start_inputs = (points, plane, image, mask, given)
         if not concrete:
             start_inputs = jax.lax.stop_gradient(start_inputs)
         start = functools.partial(
@@ -1994,7 +2008,7 @@ def calibrate_rig(
         )  # fmt: skip
         joint = functools.partial(
             _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
-            reference=index, max_relative_rms=relative_rms, given=cameras, **options,
+            reference=index, max_relative_rms=relative_rms, given=given, **options,
         )  # fmt: skip
         if concrete:  # both programs compile on other threads, the second traced meanwhile
             if (start_like := _buckets.ahead(start)) is not None:
@@ -2002,6 +2016,9 @@ def calibrate_rig(
         out = joint(start())
         if frames != F:
             out = {k: _buckets.first(v, F, axis=_FRAME_AXIS[k]) if k in _FRAME_AXIS else v
+                   for k, v in out.items()}  # fmt: skip
+        if rig != C:
+            out = {k: v if k in _RIG_WIDE else _buckets.first(v, C, axis=0)
                    for k, v in out.items()}  # fmt: skip
         poor_pairs = out.pop("poor_pairs")
         result = RigCalibration(

@@ -354,6 +354,31 @@ def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     np.testing.assert_array_equal(np.isnan(full.frame_rms), np.isnan(alone.frame_rms))
 
 
+def test_rigs_of_five_and_six_cameras_share_the_rig_s_programs(caplog):
+    """`calibrate_rig` pads a concrete rig's cameras up to a bucket (1-4 as they are, then 6, 8,
+    12, 16, ...) with cameras that see nothing: a rig of 5 cameras and one of 6 compile each of
+    its programs once. The 5 cameras' answer is the unpadded one's to the solves' tolerance,
+    the same statuses and steps."""
+    import mvcalib._rig
+
+    rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=6, n_frames=40, noise=0.3)
+    jax.clear_caches()
+    with caplog.at_level(logging.DEBUG), jax.log_compiles():
+        five = mc.calibrate_rig(rig.target, rig.pixels[:5], rig.mask[:5])
+        six = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
+    for name in ("_start", "_calibrate_rig"):
+        assert len(_compiled_on(caplog, name)) == 1, name
+    assert bool(six.ok.all()) and six.cameras.batch_shape == (6,)
+    assert five.residuals.shape[0] == five.covariance.shape[0] == five.alone_rms.shape[0] == 5
+    with mock.patch.object(mvcalib._rig, "CAMERA_BITS", 30):  # (no padding)
+        alone = mc.calibrate_rig(rig.target, rig.pixels[:5], rig.mask[:5])
+    np.testing.assert_array_equal(five.status, alone.status)
+    assert int(five.iterations) == int(alone.iterations)
+    off = np.linalg.norm(np.asarray(five.cameras.center - alone.cameras.center), axis=-1)[1:]
+    assert np.all(off < 1e-5 * np.linalg.norm(np.asarray(alone.position_std), axis=-1)[1:])
+    np.testing.assert_allclose(five.rms, alone.rms, rtol=1e-9)
+
+
 def test_photos_of_other_numbers_reuse_the_planar_programs(caplog):
     """`calibrate_planar` pads a concrete call's views up to a bucket (16, 24, 32, 48, ...) with
     views nobody saw: 17 and 20 views compile each of its programs once; the answer is the
