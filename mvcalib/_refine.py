@@ -1197,7 +1197,8 @@ def refine(
     """Minimise the reprojection error of every camera, starting from `cameras` (e.g. the DLT).
 
     One independent least-squares problem per camera, all solved in one compiled call (vmapped
-    across the rig; on one CPU device one camera after another, `one_per_step`) by
+    across the rig; on one CPU device one camera after another, `one_per_step`, and called from
+    Python in equal pieces of the rig side by side, one per core) by
     `optimistix.least_squares` with `SecantLM`, a Levenberg–Marquardt whose model keeps the
     residuals' curvature, and the projection's Jacobian written out. The rotation is refined as
     a minimal axis-angle increment on the seed's; the model is `Camera.project`, with the seed's

@@ -1981,10 +1981,10 @@ def calibrate_rig(
         rig = _buckets.size(C, bits=CAMERA_BITS) if concrete else C
 
         def padded(x, fill):
+            if not concrete:
+                return x
             return _buckets.pad(_buckets.pad(x, 1, frames, fill=fill), 0, rig, fill=fill)
 
-        if not concrete:
-            padded = lambda x, fill: x  # noqa: E731
         points, image = xp.asarray(target, dtype), padded(xp.asarray(pixels, dtype), 0.0)
         mask, observed = padded(mask, False), padded(observed, False)
         given = cameras
