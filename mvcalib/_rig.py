@@ -638,7 +638,12 @@ def _chain(Rrel, trel, shared, reference):
     return jax.lax.fori_loop(0, C - 1, grow, (linked, R, t))
 
 
-def _initialise(
+# Two programs, the rig's start and its joint solve, so that XLA compiles each on a thread of its
+# own while Python traces the second (`_buckets.ahead`): XLA compiles on one core and without
+# Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s as one
+# program, 2.6-3.0 s as two.
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _start(
     target,
     plane,
     pixels,
@@ -655,7 +660,9 @@ def _initialise(
     max_steps,
 ):
     """The rig before the joint solve: cameras, frame poses (target to reference camera), the
-    pairs and frames used, each camera's status, the target's median distance."""
+    pairs and frames used, each camera's status, the target's median distance. No derivatives
+    flow through it: `calibrate_rig` passes traced inputs through `stop_gradient` before the
+    call, so that under `grad` this program is not linearised."""
     C, F, N = mask.shape
     dtype = pixels.dtype
     raw = pixels
@@ -1344,33 +1351,6 @@ def _uncertainty(y, args, n: _Normal, residuals, *, free, loss):
     cov = reported_covariance(cov, free, p0)  # (alpha_u's too where it follows alpha_v)
     std = jnp.sqrt(jnp.diagonal(cov, axis1=-2, axis2=-1))
     return cov, std, (jnp.sqrt(position), jnp.rad2deg(jnp.sqrt(rotation)))
-
-
-# Two programs, the rig's start and its joint solve, so that XLA compiles each on a thread of its
-# own while Python traces the second (`_buckets.ahead`): XLA compiles on one core and without
-# Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s as one
-# program, 2.6-3.0 s as two.
-@functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _start(target, plane, pixels, mask, cameras, reference, rcond, max_relative_rms, *, planar,
-           given, free, loss, max_steps):  # fmt: skip
-    """`_initialise`, compiled: the rig before the joint solve. No derivatives flow through
-    it: `calibrate_rig` passes traced inputs through `stop_gradient` before the call, so that
-    under `grad` this program is not linearised."""
-    return _initialise(
-        target,
-        plane,
-        pixels,
-        mask,
-        cameras,
-        reference,
-        rcond,
-        max_relative_rms,
-        planar=planar,
-        given=given,
-        free=free,
-        loss=loss,
-        max_steps=max_steps,
-    )
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
