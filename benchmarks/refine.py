@@ -12,8 +12,9 @@ skew and k3 = 0 held fixed). The problems of C = 16 and 64 cameras are the first
 
 - **mvcalib**: the public `mvcalib.refine(seed, world, pixels, mask)` with its defaults
   (`mvcalib.SecantLM` driven by `optimistix.least_squares`, steps down to 1e-5 standard errors,
-  one problem per camera, solved one camera after another on one CPU device
-  (`mvcalib._refine.one_per_step`), vmapped across the rig elsewhere), wrapped in one `jax.jit`
+  one problem per camera, on one CPU device in 32 slots side by side, each given the next camera
+  as its own converges (`mvcalib._refine.solve_each`), vmapped across the rig elsewhere), wrapped
+  in one `jax.jit`
   so that validation, solve and report are one compiled call (whose memory XLA can analyse). It
   is compiled once per rig size by a warm-up call, whose wall time is reported separately ("1st
   call": trace + compile + one run; compile = 1st call - warm call). Every timed call ends
@@ -22,9 +23,10 @@ skew and k3 = 0 held fixed). The problems of C = 16 and 64 cameras are the first
   the reprojection report, which the SciPy loop does not.
 - **mvcalib, from Python** (`mvcalib_eager` in the JSON): the same `mvcalib.refine` called as a
   user calls it outside a `jax.jit` of their own: its programs compiled by mvcalib (LLVM
-  without optimisation below `mvcalib._buckets.COMPACT` camera-points, which 256 x 108 is),
-  the rig run in equal pieces, one per core, side by side (`mvcalib._buckets.pieces`). Its
-  cameras are compared with the jitted call's.
+  without optimisation below `mvcalib._buckets.COMPACT` camera-points, which 256 x 108 is:
+  there one camera after another, `mvcalib._refine.slots`), the rig run in equal pieces, one
+  per core, side by side (`mvcalib._buckets.pieces`). Its cameras are compared with the jitted
+  call's.
 - **scipy lm / scipy trf**: a Python loop over the cameras calling
   `scipy.optimize.least_squares` (`method="lm"`, MINPACK; `method="trf"`) with
   `x_scale="jac"` and `ftol = xtol = gtol = 1e-12` on the same parametrisation and seed:
@@ -315,10 +317,11 @@ def bench_one(problem, C, *, quick):
         stats["scipy_lm"]["median"] / stats["mvcalib_eager"]["median"]
     )
     # Cost per step: a vmapped solve runs every camera for the batch's largest number of steps;
-    # one camera per step (on one CPU device) and the loop pay each camera's own.
-    chunk = 1 if mc._refine.one_per_step(C) else C  # noqa: SLF001 (how the solve is batched)
+    # in slots refilled as cameras converge (on one CPU device) and in the loop each camera pays
+    # its own.
     steps = np.asarray(out.iterations)
-    batched_steps = int(sum(len(s) * s.max() for s in np.split(steps, range(chunk, C, chunk))))
+    queued = mc._refine.slots(C) < C  # noqa: SLF001 (how the solve is batched)
+    batched_steps = int(steps.sum()) if queued else C * int(steps.max())
     row["mvcalib_batched_camera_steps"] = batched_steps
     row["mvcalib_us_per_camera_step"] = 1e6 * stats["mvcalib"]["median"] / batched_steps
     for method in SCIPY_METHODS:

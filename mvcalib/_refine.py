@@ -932,32 +932,22 @@ def _arguments(cam, world, pixels, mask, loss):
     return p0, cam.R, _scales(p0), world, pixels, mask, loss
 
 
-def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
-    dtype = world.dtype
+def _refine_one(cam, world, pixels, mask, y, steps, result, kept, *, free, loss, options):
+    """One camera's answer from the solution `y` of its problem (`solve_each`): the refined
+    camera, RMS before and after, steps, outcome, inliers, covariance, standard errors and the
+    residuals."""
     args = _arguments(cam, world, pixels, mask, loss)
     p0, _, scale, world, pixels, _, _ = args
     residuals = functools.partial(_residuals, free=free)
-    # with a loss, Gauss–Newton's model of the robust cost, as Ceres builds it (`_irls`);
-    # `residuals` stay the objective (their squares sum to it) for the implicit derivatives
-    modelled = loss is not None and takes_model(solver)
-    model = functools.partial(_model, free=free)
-    jacobian_t = functools.partial(_residual_jacobian_t, free=free, irls=modelled)
-    y0 = jnp.zeros(len(free), dtype)
-    options = {"jacobian_transpose": jacobian_t} if isinstance(solver, SecantLM) else {}
-    if modelled:
-        options["model"] = model
-    sol = optx.least_squares(
-        residuals, solver, y0, args, options=options, max_steps=max_steps, throw=False,
-        adjoint=_adjoint(),
-    )  # fmt: skip
-    y = sol.value
     refined = _unpack(_parameters(y, p0, scale, free), cam.R)
 
     # Covariance of the free parameters: sigma^2 (J^T J)^-1 with J the Jacobian of the
     # (robustly weighted) residuals at the optimum, in the parameters' own units; sigma^2 from
     # the points' own residuals (`residual_variance`).
+    model = functools.partial(_model, free=free)
     held = (lambda y, args: model(y, args)[0]) if "model" in options else residuals  # noqa: E731
-    _, Jt = _at_optimum(held, jacobian_t, y, args, sol.state)
+    jacobian_t = functools.partial(_residual_jacobian_t, free=free, irls="model" in options)
+    _, Jt = _at_optimum(held, jacobian_t, y, args, kept)
     Jt = Jt / scale[jnp.asarray(free), None]  # dr/dp, transposed
     n_obs = 2 * jnp.sum(mask)
     raw = jnp.where(mask[:, None], refined.project(world) - pixels, 0.0)
@@ -972,26 +962,34 @@ def _refine_one(cam, world, pixels, mask, *, free, loss, solver, max_steps):
     enough = n_obs > len(free)
     refined = jax.tree_util.tree_map(lambda x: jnp.where(enough, x, jnp.nan), refined)
     raw = jnp.where(enough, raw, jnp.nan)  # (those of the NaN camera)
-    result = jnp.where(enough, sol.result._value, TOO_FEW_POINTS)  # noqa: SLF001
+    result = jnp.where(enough, result, TOO_FEW_POINTS)
     # (the refined camera's residuals, `raw`, give its RMS and, in `_refine_all`, its Table I:
     # projected once, not three times)
     return (
-        refined, masked_rms(cam, world, pixels, mask), residual_rms(raw, mask),
-        sol.stats["num_steps"].astype(jnp.int32), result, inliers, cov,
-        jnp.sqrt(jnp.diagonal(cov)), raw,
+        refined, masked_rms(cam, world, pixels, mask), residual_rms(raw, mask), steps, result,
+        inliers, cov, jnp.sqrt(jnp.diagonal(cov)), raw,
     )  # fmt: skip
 
 
-def _at_optimum(residuals, jacobian_t, y, args, state):
+def _at_optimum(residuals, jacobian_t, y, args, kept):
     """The flat residuals and their transposed Jacobian at the solution `y`: from `SecantLM`'s
-    final state, which holds them at that point or, where its last trial was taken unevaluated,
-    at the point that trial left, within `rtol` standard errors (computing them again would put
-    a second copy of the Jacobian into the compiled program, a third of its size), and
-    differentiated as `residuals(y, args)` and `jacobian_t(y, args)` are."""
-    if not isinstance(state, _SecantLMState):
+    final state (`kept`, `_kept`), which holds them at that point or, where its last trial was
+    taken unevaluated, at the point that trial left, within `rtol` standard errors (computing
+    them again would put a second copy of the Jacobian into the compiled program, a third of its
+    size), and differentiated as `residuals(y, args)` and `jacobian_t(y, args)` are."""
+    if kept is None:
         return residuals(y, args).reshape(-1), jacobian_t(y, args)
     return _held(functools.partial(_residuals_and_jacobian, residuals, jacobian_t), y, args,
-                 (state.residual, state.jacobian))  # fmt: skip
+                 kept)  # fmt: skip
+
+
+def _kept(y, state):
+    """What `solve_each` keeps of a solver's final state for `_at_optimum`: `SecantLM`'s
+    residuals and Jacobian."""
+    del y
+    if isinstance(state, _SecantLMState):
+        return state.residual, state.jacobian
+    return None
 
 
 def _residuals_and_jacobian(residuals, jacobian_t, y, args):
@@ -1033,35 +1031,188 @@ def _adjoint() -> optx.ImplicitAdjoint:
     return optx.ImplicitAdjoint(linear_solver=lx.SVD(rcond=-1.0))
 
 
-def one_per_step(n_cameras: int) -> bool:
-    """Whether `n_cameras` problems are solved one after another (`lax.map`) rather than side by
-    side (`vmap`): on one CPU device. A vmapped solve runs every member until the slowest has
-    converged, and its while loop selects every member's state at every step. Measured on this
-    project's 2-core machine (warm, one process per row; chunks of 16 vmapped cameras before):
-    256 cameras of 108 points in the user's `jax.jit` 25-26 against 37-39 ms, compiled in 1.1 s
-    less; 1000 of 19 points 98-102 against 114-124 ms; `refine` of 1000 of 19 (the quick build)
-    203-210 against 377-456 ms, of 256 of 108 135-154 against 90-97 ms (the one case slower);
-    the refinement's trace 0.2 s shorter (no `vmap` of a while loop). Accelerators want the
-    batch, and an axis split over devices must stay one."""
-    return _sharding.cpu_chunk(n_cameras, 1) is not None
+SLOTS = 32  # problems stepped side by side on one CPU device (`solve_each`)
+
+
+def slots(n_problems: int, quick: bool = False) -> int:
+    """How many of `n_problems` independent solves `solve_each` steps side by side: on one CPU
+    device `SLOTS`, each slot given the next problem as soon as its own has converged, and one in
+    a quick build (`_buckets.quick_options`: LLVM without optimisation does not vectorise, a step
+    side by side costs as much a problem as alone, and `refine` runs the rig's pieces on the
+    cores instead); elsewhere all of them at once (accelerators want the batch, and an axis split
+    over devices must stay one)."""
+    size = _sharding.cpu_chunk(n_problems, 1 if quick else SLOTS)
+    return n_problems if size is None else size
+
+
+def _no_aux(fn):
+    return lambda y, args: (fn(y, args), None)
+
+
+def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
+    """`optx.least_squares(fn, solver, y0, args[i], options)` for every problem `i` of `args`
+    (batched along its leading axis), as a work queue: `size` problems take a step side by side
+    (vmapped; `slots`), and a slot whose problem has ended (converged, failed, or at
+    `max_steps`) takes the next problem at the following step.
+
+    A vmapped loop of solves runs every problem until the slowest has converged; one problem at
+    a time runs each step's ~100 small kernels for one camera. Measured (`jax.jit(mc.refine)`,
+    warm, 2026-12-07, 2 cores, the versions alternated in one process): 256 cameras of 108
+    points (the refine benchmark, 2,074 steps) 31.4 ms in 32 slots against 38.3 one camera at a
+    time and 37.5 in vmapped chunks of 16 (39.1 against 55.7 in a slower hour); 1024 of 19
+    points 69 against 115 and 92 ms. The price: the caller's trace and compile take ~0.3 s
+    longer each (the step vmapped). A problem's answer is the same to the last bit whichever
+    slot it ran in, so a rig's cameras depend neither on their order nor on the rest of the
+    rig.
+
+    `fn(y, args_i)` returns the residuals of problem `i` (no aux) from `y0`, the start of every
+    problem; `solver` is an optimistix least-squares solver (not a minimiser). Returns each
+    problem's `(y, steps, result, kept)`: its solution, the number of steps (one evaluation
+    each, as `optx.least_squares` counts them), the integer value of its `optx.RESULTS`
+    outcome, and `keep(y, final_state)`. The loop is not differentiated: derivatives come from
+    `implicit`."""
+    n = jax.tree_util.tree_leaves(args)[0].shape[0]
+    queue = size < n  # (else every slot keeps its problem: a vmapped solve)
+    keep = (lambda y, state: None) if keep is None else keep
+    fn = _no_aux(fn)
+    tags = frozenset()
+    first = jax.tree_util.tree_map(lambda x: x[0], args)
+    f_struct = jax.eval_shape(fn, y0, first)[0]
+    state = solver.init(fn, y0, first, options, f_struct, None, tags)
+    static = eqx.partition(state, eqx.is_array)[1]
+    kept = jax.tree_util.tree_map(  # (the shapes of what `keep` takes from a final state)
+        lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(keep, y0, state)
+    )
+    done_code = optx.RESULTS.successful._value  # noqa: SLF001
+    at_max = optx.RESULTS.nonlinear_max_steps_reached._value  # noqa: SLF001
+
+    def take(index):
+        return jax.tree_util.tree_map(lambda x: x[jnp.minimum(index, n - 1)], args)
+
+    def init(args_i):
+        state = solver.init(fn, y0, args_i, options, f_struct, None, tags)
+        return eqx.partition(state, eqx.is_array)[0]
+
+    def step(y, args_i, dynamic):  # `optx.least_squares`'s loop body, and its `postprocess`
+        state = eqx.combine(dynamic, static)
+        y_new, state, _ = solver.step(fn, y, args_i, options, state, tags)
+        stop, result = solver.terminate(fn, y, args_i, options, state, tags)
+        finite = jnp.all(jnp.array([jnp.isfinite(x).all() for x in jax.tree_util.tree_leaves(y)]))
+        result = optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)  # (y before the step)
+        answer = solver.postprocess(fn, y_new, None, args_i, options, state, tags, result)[0]
+        dynamic = eqx.partition(state, eqx.is_array)[0]
+        return y_new, dynamic, stop, result._value, answer, keep(answer, state)  # noqa: SLF001
+
+    if size == 1:  # one problem after another, each its own loop (LAPACK's calls unbatched)
+
+        def alone(args_i):
+            def body(carry):
+                y, dynamic, steps, _, _, _ = carry
+                y, dynamic, stop, result, answer, kept = step(y, args_i, dynamic)
+                stop = stop | (result != done_code)
+                return y, dynamic, steps + 1, stop, result, (answer, kept)
+
+            zero = jnp.zeros((), jnp.int32)
+            carry = (y0, init(args_i), zero, jnp.asarray(False), zero, (y0, kept))
+            carry = jax.lax.while_loop(lambda c: ~c[3] & (c[2] < max_steps), body, carry)
+            _, _, steps, stop, result, (answer, final) = carry
+            return answer, steps, jnp.where(stop, result, at_max), final
+
+        return jax.lax.map(alone, args)
+
+    def write(out, ended, problem, value):
+        if queue:  # (an index of `n` is dropped)
+            return out.at[jnp.where(ended, problem, n)].set(value, mode="drop")
+        return jnp.where(ended.reshape((-1,) + (1,) * (out.ndim - 1)), value, out)
+
+    def body(carry):
+        problem, following, y, dynamic, steps, out = carry
+        y, dynamic, stop, result, answer, kept = jax.vmap(step)(
+            y, take(problem) if queue else args, dynamic
+        )
+        steps = steps + 1
+        ended = (problem < n) & (stop | (result != done_code) | (steps >= max_steps))
+        result = jnp.where(stop | (result != done_code), result, at_max)
+        values = (answer, steps, result, kept)
+        out = jax.tree_util.tree_map(lambda o, v: write(o, ended, problem, v), out, values)
+        if not queue:
+            return jnp.where(ended, n, problem), following, y, dynamic, steps, out
+        # the ended slots take the next problems
+        nxt = following + jnp.cumsum(ended) - 1
+        problem = jnp.where(ended, jnp.where(nxt < n, nxt, n), problem)
+        restart = lambda new, old: jnp.where(  # noqa: E731
+            ended.reshape((-1,) + (1,) * (old.ndim - 1)), new, old
+        )
+        y = restart(jnp.broadcast_to(y0, y.shape), y)
+        dynamic = jax.tree_util.tree_map(restart, jax.vmap(init)(take(problem)), dynamic)
+        steps = jnp.where(ended, 0, steps)
+        return problem, following + jnp.sum(ended), y, dynamic, steps, out
+
+    problem = jnp.arange(size)
+    start = (take(problem) if queue else args, jax.vmap(init)(take(problem) if queue else args))
+    y = jnp.broadcast_to(y0, (size, *y0.shape))
+    out = (
+        jnp.zeros((n, *y0.shape), y0.dtype), jnp.zeros(n, jnp.int32), jnp.zeros(n, jnp.int32),
+        jax.tree_util.tree_map(lambda x: jnp.zeros((n, *x.shape), x.dtype), kept),
+    )  # fmt: skip
+    carry = (problem, jnp.asarray(size), y, start[1], jnp.zeros(size, jnp.int32), out)
+    return jax.lax.while_loop(lambda carry: jnp.any(carry[0] < n), body, carry)[-1]
+
+
+def _given(inputs):
+    """`implicit`'s primal: the solution, found already."""
+    return inputs[1], None
+
+
+def _stationary(root, _, inputs):
+    """The gradient of `0.5 |fn(y, args)|^2` at `root`, zero at a least-squares solution (the
+    condition `optx.least_squares` differentiates implicitly)."""
+    fn, _, args = inputs[:3]
+    return jax.grad(lambda y: 0.5 * jnp.sum(fn(y, args) ** 2))(root)
+
+
+def implicit(fn, y, args):
+    """The least-squares solution `y` of `fn(., args)` (one problem), with the derivatives of
+    the implicit function theorem with respect to `args`, as `optx.least_squares` gives them
+    (`_adjoint`)."""
+    inputs = (fn, jax.lax.stop_gradient(y), args)
+    return _adjoint().apply(_given, _stationary, inputs, frozenset())[0]
 
 
 @eqx.filter_jit
-def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps):
+def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps, slotted):
     batch = cameras.batch_shape
     n = world.shape[-2]
     flat = lambda x, tail: jnp.broadcast_to(x, (*batch, *tail)).reshape(-1, *tail)  # noqa: E731
     cams = flat_rig(cameras)
-    kernel = functools.partial(
-        _refine_one, free=free, loss=loss, solver=solver, max_steps=max_steps
-    )
     # a camera without a finite seed sees nothing (its problem ends at once), and is flagged
     cams, mask, usable = usable_rig(cams, flat(mask, (n,)), unit_camera(world.dtype, cams.lens))
-    inputs = (cams, flat(world, (n, 3)), flat(pixels, (n, 2)), mask)
-    if one_per_step(math.prod(batch)):
-        out = jax.lax.map(lambda args: kernel(*args), inputs)
-    else:
+    world, pixels = flat(world, (n, 3)), flat(pixels, (n, 2))
+    args = jax.vmap(_arguments, (0, 0, 0, 0, None))(cams, world, pixels, mask, loss)
+    residuals = functools.partial(_residuals, free=free)
+    # with a loss, Gauss–Newton's model of the robust cost, as Ceres builds it (`_irls`);
+    # `residuals` stay the objective (their squares sum to it) for the implicit derivatives
+    modelled = loss is not None and takes_model(solver)
+    options = {}
+    if isinstance(solver, SecantLM):
+        options["jacobian_transpose"] = functools.partial(
+            _residual_jacobian_t, free=free, irls=modelled
+        )
+    if modelled:
+        options["model"] = functools.partial(_model, free=free)
+    y0 = jnp.zeros(len(free), world.dtype)
+    size = slots(len(mask), quick=not slotted)
+    y, steps, result, kept = solve_each(
+        residuals, solver, y0, jax.lax.stop_gradient(args), options, max_steps=max_steps,
+        size=size, keep=_kept,
+    )  # fmt: skip
+    y = jax.vmap(functools.partial(implicit, residuals))(y, args)
+    kernel = functools.partial(_refine_one, free=free, loss=loss, options=options)
+    inputs = (cams, world, pixels, mask, y, steps, result, kept)
+    if size > 1:
         out = jax.vmap(kernel)(*inputs)
+    else:  # (one camera at a time, LAPACK unbatched: the rig's pieces run side by side)
+        out = jax.lax.map(lambda inputs: kernel(*inputs), inputs)
     refined, rms_before, rms_after, steps, result, *rest = out
     rms_before, rms_after = (jnp.where(usable, x, jnp.nan) for x in (rms_before, rms_after))
     result = jnp.where(usable, result, NOT_FINITE_SEED)
@@ -1314,25 +1465,31 @@ def refine(
 
 
 def _refine_side_by_side(cameras, world, pixels, mask, *, quick, **options) -> Refinement:
-    """`_refine_all`, called from Python with a rig of one camera axis, in equal pieces of it
-    run side by side on the CPU's cores (`_buckets.in_pieces`): each camera's problem is its
-    own, solved one after another (`one_per_step`), so the pieces' cameras are the whole's to the
-    last bit (and the reports' RMS to rounding: a sum vectorised across the cameras)."""
-    if mask.ndim != 2:
-        return _refine_all(cameras, world, pixels, mask, quick=quick, **options)
+    """`_refine_all`, called from Python. Built quickly (a small rig, whose compile is most of
+    the wait), the program solves one camera at a time (`slots`), and a rig of one camera axis
+    runs in equal pieces side by side on the CPU's cores (`_buckets.in_pieces`): each camera's
+    problem is its own, so the pieces' cameras are the whole's to the last bit (and the
+    reports' RMS to rounding: a sum vectorised across the cameras). Optimised, one program
+    solves the rig in `SLOTS` side by side, as inside the caller's trace."""
+    quick = quick and _buckets.applies(cameras, world, pixels, mask)  # (else traced)
+    if mask.ndim != 2 or not quick:
+        return _refine_all(cameras, world, pixels, mask, quick=quick, slotted=not quick, **options)
     axes = (0, None if np.ndim(world) == 2 else 0, 0, 0)
     args = (cameras, world, pixels, mask)
-    return _buckets.in_pieces(_refine_all, args, axes, quick=quick, **options)
+    return _buckets.in_pieces(_refine_all, args, axes, quick=quick, slotted=False, **options)
 
 
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _refine_all(cameras, world, pixels, mask, *, free, loss, solver, max_steps) -> Refinement:
-    """`refine` of validated arrays, in one compiled program."""
+def _refine_all(
+    cameras, world, pixels, mask, *, free, loss, solver, max_steps, slotted=True
+) -> Refinement:
+    """`refine` of validated arrays, in one compiled program (`slotted`: see `slots`)."""
     dtype = _validate.result_dtype(world.dtype, cameras.R.dtype)
     cameras = jax.tree_util.tree_map(lambda x: x.astype(dtype), cameras)
     out = _refine_batched(
-        cameras, world.astype(dtype), pixels.astype(dtype), mask, free, loss, solver, max_steps
-    )
+        cameras, world.astype(dtype), pixels.astype(dtype), mask, free, loss, solver, max_steps,
+        slotted,
+    )  # fmt: skip
     refined, rms_before, rms_after, steps, result, inliers, cov, std, residuals = out
     report = residual_report(residuals, jnp.broadcast_to(mask, residuals.shape[:-1]))
     return Refinement(

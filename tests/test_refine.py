@@ -619,29 +619,42 @@ def test_covariance_inverse_equals_lapack():
     assert np.isnan(np.asarray(_spd_inverse(jnp.array([[1.0, 2.0], [2.0, 1.0]])))).all()
 
 
-# Equal to 1e-12 holds for XLA's default CPU code generation, which rounds a camera's steps
+# Equal to 1e-10 holds for XLA's default CPU code generation, which rounds a camera's steps
 # alike in any batch; the older emitters do not (8e-10 apart), so this runs with the default (in a
 # child process: its data are made there, and the seed is the truth with its focal length 2 % off
 # and no distortion, so that no DLT is compiled for it).
 @pytest.mark.default_codegen
-def test_cameras_solved_one_per_step_equal_cameras_solved_side_by_side(monkeypatch):
-    """On one CPU device the cameras are solved one after another (`lax.map`); elsewhere side by
-    side (`vmap`), whose loop holds each converged camera still: the same steps, the same
-    answers up to rounding."""
+def test_cameras_solved_alone_in_slots_and_all_at_once_agree(monkeypatch):
+    """`solve_each`'s three forms: one camera after another (a quick build's), 4 slots each
+    given the next camera as its own converges (an optimised build's on one CPU device), all 24
+    at once (accelerators'): the same steps, the same answers up to rounding. In slots, a
+    camera's answer is the same to the last bit whichever slot it ran in (the rig reversed)."""
     from mvcalib import _refine
 
     cams, world, pixels, mask = distorted_rig(0, 24)
     seed = eqx.tree_at(
         lambda c: (c.alpha_u, c.dist), cams, (1.02 * cams.alpha_u, jnp.zeros_like(cams.dist))
     )
-    assert _refine.one_per_step(24)  # (the path under test)
-    one = mc.refine(seed, world, pixels, mask)
-    monkeypatch.setattr(_refine, "one_per_step", lambda n: False)
-    batch = mc.refine(seed, world, pixels, mask)
-    assert bool(one.ok.all()) and float(one.rms_after.max()) < 2 * NOISE
-    np.testing.assert_allclose(one.cameras.alpha_u, batch.cameras.alpha_u, rtol=1e-10)
-    np.testing.assert_allclose(one.cameras.dist, batch.cameras.dist, atol=1e-10)
-    np.testing.assert_array_equal(one.iterations, batch.iterations)
+    assert _refine.slots(24, quick=True) == 1 and _refine.slots(24) == 24  # (fewer than SLOTS)
+
+    def solve(size, reverse=False):
+        monkeypatch.setattr(_refine, "slots", lambda n, quick=False: size)
+        jax.clear_caches()  # (the programs are traced again, with `size`)
+        _refine._refine_all.clear_cache()
+        order = slice(None, None, -1 if reverse else 1)
+        out = mc.refine(seed[order], world, pixels[order], mask[order])
+        return jax.tree_util.tree_map(lambda x: np.asarray(x)[order], out)
+
+    alone, slotted, together = solve(1), solve(4), solve(24)
+    assert bool(alone.ok.all()) and float(alone.rms_after.max()) < 2 * NOISE
+    for other in (slotted, together):
+        np.testing.assert_allclose(alone.cameras.alpha_u, other.cameras.alpha_u, rtol=1e-10)
+        np.testing.assert_allclose(alone.cameras.dist, other.cameras.dist, atol=1e-10)
+        np.testing.assert_array_equal(alone.iterations, other.iterations)
+    reversed_ = solve(4, reverse=True)
+    for a, b in zip(jax.tree_util.tree_leaves(slotted), jax.tree_util.tree_leaves(reversed_)):
+        if np.asarray(a).dtype != object:
+            np.testing.assert_array_equal(a, b)
 
 
 def test_written_out_jacobians_equal_autodiff_of_camera_project():
