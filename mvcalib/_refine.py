@@ -1,6 +1,6 @@
 """Nonlinear refinement of reprojection error: Levenberg–Marquardt (an optimistix solver), one
-problem per camera, vmapped across the rig; distortion, robust losses, covariance, implicit
-derivatives."""
+problem per camera, batched across the rig (`solve_each`); distortion, robust losses, covariance,
+implicit derivatives."""
 
 from __future__ import annotations
 
@@ -1348,10 +1348,11 @@ def refine(
     """Minimise the reprojection error of every camera, starting from `cameras` (e.g. the DLT).
 
     One independent least-squares problem per camera, all solved in one compiled call (vmapped
-    across the rig; on one CPU device one camera after another, `one_per_step`, and called from
-    Python in equal pieces of the rig side by side, one per core) by
-    `optimistix.least_squares` with `SecantLM`, a Levenberg–Marquardt whose model keeps the
-    residuals' curvature, and the projection's Jacobian written out. The rotation is refined as
+    across the rig; on one CPU device in 32 slots, each given the next camera as its own
+    converges, `solve_each`; a small rig called from Python one camera after another, in equal
+    pieces of the rig side by side, one per core), each as `optimistix.least_squares` solves it,
+    with `SecantLM`, a Levenberg–Marquardt whose model keeps the residuals' curvature, and the
+    projection's Jacobian written out. The rotation is refined as
     a minimal axis-angle increment on the seed's; the model is `Camera.project`, with the seed's
     lens (a pinhole with Brown–Conrady distortion, or a fisheye). Derivatives of the result with
     respect to `world` and `pixels` (and the seed) come from implicit differentiation through
