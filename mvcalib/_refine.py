@@ -1034,14 +1034,13 @@ def _adjoint() -> optx.ImplicitAdjoint:
 SLOTS = 32  # problems stepped side by side on one CPU device (`solve_each`)
 
 
-def slots(n_problems: int, quick: bool = False) -> int:
+def slots(n_problems: int, alone: bool = False) -> int:
     """How many of `n_problems` independent solves `solve_each` steps side by side: on one CPU
-    device `SLOTS`, each slot given the next problem as soon as its own has converged, and one in
-    a quick build (`_buckets.quick_options`: LLVM without optimisation does not vectorise, a step
-    side by side costs as much a problem as alone, and `refine` runs the rig's pieces on the
-    cores instead); elsewhere all of them at once (accelerators want the batch, and an axis split
-    over devices must stay one)."""
-    size = _sharding.cpu_chunk(n_problems, 1 if quick else SLOTS)
+    device `SLOTS`, each slot given the next problem as soon as its own has converged, or one
+    (`alone`: the programs `refine` runs side by side, one per core, when called from Python,
+    which must not batch LAPACK's calls, `_sharding.batched_lapack_may_hang`); elsewhere all of
+    them at once (accelerators want the batch, and an axis split over devices must stay one)."""
+    size = _sharding.cpu_chunk(n_problems, 1 if alone else SLOTS)
     return n_problems if size is None else size
 
 
@@ -1080,9 +1079,7 @@ def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
     f_struct = jax.eval_shape(fn, y0, first)[0]
     state = solver.init(fn, y0, first, options, f_struct, None, tags)
     static = eqx.partition(state, eqx.is_array)[1]
-    kept = jax.tree_util.tree_map(  # (the shapes of what `keep` takes from a final state)
-        lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(keep, y0, state)
-    )
+    kept = jax.tree_util.tree_map(jnp.zeros_like, keep(y0, state))  # (its shapes, as zeros)
     done_code = optx.RESULTS.successful._value  # noqa: SLF001
     at_max = optx.RESULTS.nonlinear_max_steps_reached._value  # noqa: SLF001
 
@@ -1201,7 +1198,7 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps,
     if modelled:
         options["model"] = functools.partial(_model, free=free)
     y0 = jnp.zeros(len(free), world.dtype)
-    size = slots(len(mask), quick=not slotted)
+    size = slots(len(mask), alone=not slotted)
     y, steps, result, kept = solve_each(
         residuals, solver, y0, jax.lax.stop_gradient(args), options, max_steps=max_steps,
         size=size, keep=_kept,
@@ -1349,8 +1346,8 @@ def refine(
 
     One independent least-squares problem per camera, all solved in one compiled call (vmapped
     across the rig; on one CPU device in 32 slots, each given the next camera as its own
-    converges, `solve_each`; a small rig called from Python one camera after another, in equal
-    pieces of the rig side by side, one per core), each as `optimistix.least_squares` solves it,
+    converges, `solve_each`; called from Python, one camera after another in equal pieces of
+    the rig side by side, one per core), each as `optimistix.least_squares` solves it,
     with `SecantLM`, a Levenberg–Marquardt whose model keeps the residuals' curvature, and the
     projection's Jacobian written out. The rotation is refined as
     a minimal axis-angle increment on the seed's; the model is `Camera.project`, with the seed's
@@ -1466,15 +1463,17 @@ def refine(
 
 
 def _refine_side_by_side(cameras, world, pixels, mask, *, quick, **options) -> Refinement:
-    """`_refine_all`, called from Python. Built quickly (a small rig, whose compile is most of
-    the wait), the program solves one camera at a time (`slots`), and a rig of one camera axis
-    runs in equal pieces side by side on the CPU's cores (`_buckets.in_pieces`): each camera's
-    problem is its own, so the pieces' cameras are the whole's to the last bit (and the
-    reports' RMS to rounding: a sum vectorised across the cameras). Optimised, one program
-    solves the rig in `SLOTS` side by side, as inside the caller's trace."""
-    quick = quick and _buckets.applies(cameras, world, pixels, mask)  # (else traced)
-    if mask.ndim != 2 or not quick:
-        return _refine_all(cameras, world, pixels, mask, quick=quick, slotted=not quick, **options)
+    """`_refine_all`. Called from Python with concrete arrays, the program solves one camera at
+    a time (`slots`), and a rig of one camera axis runs in equal pieces side by side on the
+    CPU's cores (`_buckets.in_pieces`): each camera's problem is its own, so the pieces' cameras
+    are the whole's to the last bit (and the reports' RMS to rounding: a sum vectorised across
+    the cameras). Inside the caller's trace, one program solves the rig in `SLOTS` side by
+    side."""
+    concrete = _buckets.applies(cameras, world, pixels, mask)
+    if mask.ndim != 2 or not concrete:
+        return _refine_all(
+            cameras, world, pixels, mask, quick=quick, slotted=not concrete, **options
+        )
     axes = (0, None if np.ndim(world) == 2 else 0, 0, 0)
     args = (cameras, world, pixels, mask)
     return _buckets.in_pieces(_refine_all, args, axes, quick=quick, slotted=False, **options)

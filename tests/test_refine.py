@@ -635,10 +635,10 @@ def test_cameras_solved_alone_in_slots_and_all_at_once_agree(monkeypatch):
     seed = eqx.tree_at(
         lambda c: (c.alpha_u, c.dist), cams, (1.02 * cams.alpha_u, jnp.zeros_like(cams.dist))
     )
-    assert _refine.slots(24, quick=True) == 1 and _refine.slots(24) == 24  # (fewer than SLOTS)
+    assert _refine.slots(24, alone=True) == 1 and _refine.slots(24) == 24  # (fewer than SLOTS)
 
     def solve(size, reverse=False):
-        monkeypatch.setattr(_refine, "slots", lambda n, quick=False: size)
+        monkeypatch.setattr(_refine, "slots", lambda n, alone=False: size)
         jax.clear_caches()  # (the programs are traced again, with `size`)
         _refine._refine_all.clear_cache()
         order = slice(None, None, -1 if reverse else 1)
