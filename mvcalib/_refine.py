@@ -1048,7 +1048,9 @@ def _no_aux(fn):
     return lambda y, args: (fn(y, args), None)
 
 
-def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
+def solve_each(
+    fn, solver, y0, args, options, *, max_steps, size, keep=None, finish=None, extra=None
+):
     """`optx.least_squares(fn, solver, y0, args[i], options)` for every problem `i` of `args`
     (batched along its leading axis), as a work queue: `size` problems take a step side by side
     (vmapped; `slots`), and a slot whose problem has ended (converged, failed, or at
@@ -1065,11 +1067,16 @@ def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
     rig.
 
     `fn(y, args_i)` returns the residuals of problem `i` (no aux) from `y0`, the start of every
-    problem; `solver` is an optimistix least-squares solver (not a minimiser). Returns each
-    problem's `(y, steps, result, kept)`: its solution, the number of steps (one evaluation
-    each, as `optx.least_squares` counts them), the integer value of its `optx.RESULTS`
-    outcome, and `keep(y, final_state)`. The loop is not differentiated: derivatives come from
-    `implicit`."""
+    problem; `solver` is an optimistix least-squares solver (not a minimiser). Returns, for each
+    problem, `finish(extra_i, y, steps, result, kept)` (by default that tuple without `extra_i`,
+    problem `i`'s entries of `extra`, a pytree batched as `args` is):
+    its solution, with the derivatives of the implicit function theorem (`implicit`: the loop
+    itself is not differentiated), the number of steps (one evaluation each, as
+    `optx.least_squares` counts them), the integer value of its `optx.RESULTS` outcome, and
+    `keep(y, final_state)`. With `size` 1, one problem after another, each solved and finished
+    in one step of a loop over them (LAPACK's calls unbatched)."""
+    finish = (lambda extra_i, *out: out) if finish is None else finish
+    solution = functools.partial(implicit, fn)
     n = jax.tree_util.tree_leaves(args)[0].shape[0]
     queue = size < n  # (else every slot keeps its problem: a vmapped solve)
     keep = (lambda y, state: None) if keep is None else keep
@@ -1100,22 +1107,26 @@ def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
         dynamic = eqx.partition(state, eqx.is_array)[0]
         return y_new, dynamic, stop, result._value, answer, keep(answer, state)  # noqa: SLF001
 
-    if size == 1:  # one problem after another, each its own loop (LAPACK's calls unbatched)
+    if size == 1:  # one problem after another, each its own loop
 
-        def alone(args_i):
+        def alone(inputs):
+            args_i, extra_i = inputs
+            fixed = jax.lax.stop_gradient(args_i)
+
             def body(carry):
                 y, dynamic, steps, _, _, _ = carry
-                y, dynamic, stop, result, answer, kept = step(y, args_i, dynamic)
+                y, dynamic, stop, result, answer, kept = step(y, fixed, dynamic)
                 stop = stop | (result != done_code)
                 return y, dynamic, steps + 1, stop, result, (answer, kept)
 
             zero = jnp.zeros((), jnp.int32)
-            carry = (y0, init(args_i), zero, jnp.asarray(False), zero, (y0, kept))
+            carry = (y0, init(fixed), zero, jnp.asarray(False), zero, (y0, kept))
             carry = jax.lax.while_loop(lambda c: ~c[3] & (c[2] < max_steps), body, carry)
             _, _, steps, stop, result, (answer, final) = carry
-            return answer, steps, jnp.where(stop, result, at_max), final
+            result = jnp.where(stop, result, at_max)
+            return finish(extra_i, solution(answer, args_i), steps, result, final)
 
-        return jax.lax.map(alone, args)
+        return jax.lax.map(alone, (args, extra))
 
     def write(out, ended, problem, value):
         if queue:  # (an index of `n` is dropped)
@@ -1145,6 +1156,7 @@ def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
         steps = jnp.where(ended, 0, steps)
         return problem, following + jnp.sum(ended), y, dynamic, steps, out
 
+    args, differentiable = jax.lax.stop_gradient(args), args
     problem = jnp.arange(size)
     start = (take(problem) if queue else args, jax.vmap(init)(take(problem) if queue else args))
     y = jnp.broadcast_to(y0, (size, *y0.shape))
@@ -1153,7 +1165,9 @@ def solve_each(fn, solver, y0, args, options, *, max_steps, size, keep=None):
         jax.tree_util.tree_map(lambda x: jnp.zeros((n, *x.shape), x.dtype), kept),
     )  # fmt: skip
     carry = (problem, jnp.asarray(size), y, start[1], jnp.zeros(size, jnp.int32), out)
-    return jax.lax.while_loop(lambda carry: jnp.any(carry[0] < n), body, carry)[-1]
+    y, steps, result, kept = jax.lax.while_loop(lambda c: jnp.any(c[0] < n), body, carry)[-1]
+    y = jax.vmap(solution)(y, differentiable)
+    return jax.vmap(finish)(extra, y, steps, result, kept)
 
 
 def _given(inputs):
@@ -1198,18 +1212,12 @@ def _refine_batched(cameras, world, pixels, mask, free, loss, solver, max_steps,
     if modelled:
         options["model"] = functools.partial(_model, free=free)
     y0 = jnp.zeros(len(free), world.dtype)
-    size = slots(len(mask), alone=not slotted)
-    y, steps, result, kept = solve_each(
-        residuals, solver, y0, jax.lax.stop_gradient(args), options, max_steps=max_steps,
-        size=size, keep=_kept,
-    )  # fmt: skip
-    y = jax.vmap(functools.partial(implicit, residuals))(y, args)
     kernel = functools.partial(_refine_one, free=free, loss=loss, options=options)
-    inputs = (cams, world, pixels, mask, y, steps, result, kept)
-    if size > 1:
-        out = jax.vmap(kernel)(*inputs)
-    else:  # (one camera at a time, LAPACK unbatched: the rig's pieces run side by side)
-        out = jax.lax.map(lambda inputs: kernel(*inputs), inputs)
+    out = solve_each(
+        residuals, solver, y0, args, options, max_steps=max_steps,
+        size=slots(len(mask), alone=not slotted), keep=_kept,
+        finish=lambda inputs, *solved: kernel(*inputs, *solved), extra=(cams, world, pixels, mask),
+    )  # fmt: skip
     refined, rms_before, rms_after, steps, result, *rest = out
     rms_before, rms_after = (jnp.where(usable, x, jnp.nan) for x in (rms_before, rms_after))
     result = jnp.where(usable, result, NOT_FINITE_SEED)
