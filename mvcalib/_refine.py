@@ -1090,6 +1090,9 @@ def solve_each(
     done_code = optx.RESULTS.successful._value  # noqa: SLF001
     at_max = optx.RESULTS.nonlinear_max_steps_reached._value  # noqa: SLF001
 
+    def finite(y):
+        return jnp.all(jnp.array([jnp.isfinite(x).all() for x in jax.tree_util.tree_leaves(y)]))
+
     def take(index):
         return jax.tree_util.tree_map(lambda x: x[jnp.minimum(index, n - 1)], args)
 
@@ -1101,8 +1104,7 @@ def solve_each(
         state = eqx.combine(dynamic, static)
         y_new, state, _ = solver.step(fn, y, args_i, options, state, tags)
         stop, result = solver.terminate(fn, y, args_i, options, state, tags)
-        finite = jnp.all(jnp.array([jnp.isfinite(x).all() for x in jax.tree_util.tree_leaves(y)]))
-        result = optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)  # (y before the step)
+        result = optx.RESULTS.where(finite(y), result, optx.RESULTS.nonfinite)  # (y before it)
         answer = solver.postprocess(fn, y_new, None, args_i, options, state, tags, result)[0]
         dynamic = eqx.partition(state, eqx.is_array)[0]
         return y_new, dynamic, stop, result._value, answer, keep(answer, state)  # noqa: SLF001
@@ -1113,18 +1115,25 @@ def solve_each(
             args_i, extra_i = inputs
             fixed = jax.lax.stop_gradient(args_i)
 
-            def body(carry):
-                y, dynamic, steps, _, _, _ = carry
-                y, dynamic, stop, result, answer, kept = step(y, fixed, dynamic)
-                stop = stop | (result != done_code)
-                return y, dynamic, steps + 1, stop, result, (answer, kept)
+            def body(carry):  # (`optx.least_squares`'s loop: the state carried once)
+                y, dynamic, steps, _, _ = carry
+                state = eqx.combine(dynamic, static)
+                y_new, state, _ = solver.step(fn, y, fixed, options, state, tags)
+                stop, result = solver.terminate(fn, y, fixed, options, state, tags)
+                result = optx.RESULTS.where(finite(y), result, optx.RESULTS.nonfinite)
+                stop = stop | (result != optx.RESULTS.successful)
+                return y_new, eqx.partition(state, eqx.is_array)[0], steps + 1, stop, result
 
             zero = jnp.zeros((), jnp.int32)
-            carry = (y0, init(fixed), zero, jnp.asarray(False), zero, (y0, kept))
+            carry = (y0, init(fixed), zero, jnp.asarray(False), optx.RESULTS.successful)
             carry = jax.lax.while_loop(lambda c: ~c[3] & (c[2] < max_steps), body, carry)
-            _, _, steps, stop, result, (answer, final) = carry
-            result = jnp.where(stop, result, at_max)
-            return finish(extra_i, solution(answer, args_i), steps, result, final)
+            y, dynamic, steps, stop, result = carry
+            result = optx.RESULTS.where(stop, result, optx.RESULTS.nonlinear_max_steps_reached)
+            state = eqx.combine(dynamic, static)
+            answer = solver.postprocess(fn, y, None, fixed, options, state, tags, result)[0]
+            kept = keep(answer, state)
+            result = result._value  # noqa: SLF001
+            return finish(extra_i, solution(answer, args_i), steps, result, kept)
 
         return jax.lax.map(alone, (args, extra))
 
