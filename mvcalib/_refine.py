@@ -1100,14 +1100,21 @@ def solve_each(
         state = solver.init(fn, y0, args_i, options, f_struct, None, tags)
         return eqx.partition(state, eqx.is_array)[0]
 
-    def step(y, args_i, dynamic):  # `optx.least_squares`'s loop body, and its `postprocess`
+    def advance(y, args_i, dynamic):  # `optx.least_squares`'s loop body
         state = eqx.combine(dynamic, static)
         y_new, state, _ = solver.step(fn, y, args_i, options, state, tags)
         stop, result = solver.terminate(fn, y, args_i, options, state, tags)
         result = optx.RESULTS.where(finite(y), result, optx.RESULTS.nonfinite)  # (y before it)
-        answer = solver.postprocess(fn, y_new, None, args_i, options, state, tags, result)[0]
+        return y_new, state, stop, result
+
+    def answer(y, args_i, state, result):  # its `postprocess`, and what is kept of the state
+        y = solver.postprocess(fn, y, None, args_i, options, state, tags, result)[0]
+        return y, keep(y, state)
+
+    def step(y, args_i, dynamic):
+        y, state, stop, result = advance(y, args_i, dynamic)
         dynamic = eqx.partition(state, eqx.is_array)[0]
-        return y_new, dynamic, stop, result._value, answer, keep(answer, state)  # noqa: SLF001
+        return y, dynamic, stop, result._value, *answer(y, args_i, state, result)  # noqa: SLF001
 
     if size == 1:  # one problem after another, each its own loop
 
@@ -1117,23 +1124,18 @@ def solve_each(
 
             def body(carry):  # (`optx.least_squares`'s loop: the state carried once)
                 y, dynamic, steps, _, _ = carry
-                state = eqx.combine(dynamic, static)
-                y_new, state, _ = solver.step(fn, y, fixed, options, state, tags)
-                stop, result = solver.terminate(fn, y, fixed, options, state, tags)
-                result = optx.RESULTS.where(finite(y), result, optx.RESULTS.nonfinite)
+                y, state, stop, result = advance(y, fixed, dynamic)
                 stop = stop | (result != optx.RESULTS.successful)
-                return y_new, eqx.partition(state, eqx.is_array)[0], steps + 1, stop, result
+                return y, eqx.partition(state, eqx.is_array)[0], steps + 1, stop, result
 
             zero = jnp.zeros((), jnp.int32)
             carry = (y0, init(fixed), zero, jnp.asarray(False), optx.RESULTS.successful)
             carry = jax.lax.while_loop(lambda c: ~c[3] & (c[2] < max_steps), body, carry)
             y, dynamic, steps, stop, result = carry
             result = optx.RESULTS.where(stop, result, optx.RESULTS.nonlinear_max_steps_reached)
-            state = eqx.combine(dynamic, static)
-            answer = solver.postprocess(fn, y, None, fixed, options, state, tags, result)[0]
-            kept = keep(answer, state)
+            y, kept = answer(y, fixed, eqx.combine(dynamic, static), result)
             result = result._value  # noqa: SLF001
-            return finish(extra_i, solution(answer, args_i), steps, result, kept)
+            return finish(extra_i, solution(y, args_i), steps, result, kept)
 
         return jax.lax.map(alone, (args, extra))
 
