@@ -334,9 +334,9 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
     def __call__(self, *args, quick: bool = False, _compile_only: bool = False, **kwargs):
         if not _top_level():
             return self.traced(*args, **kwargs)
-        _lapack_from_scipy()
         signature = _signature(quick, args, kwargs)
         with collector_paused():
+            _lapack_from_scipy()
             build = self.quick if quick else self.optimised
             compiled = signature in self._seen and _holds_programs(build)
             if _AHEAD.get():

@@ -14,11 +14,22 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _buckets, _dlt, _status, _validate
 from ._camera import Camera, placeholder
+from ._gc import collector_paused
 from ._report import ReprojectionReport, compute_report, format_table, index_names, residual_rms
 from ._status import Status
 
 if TYPE_CHECKING:
     from . import _refine
+
+
+def _refiner():
+    """`mvcalib._refine`, imported at the first refinement (with Optimistix and Lineax, which
+    nothing else needs) with the garbage collector paused, as `mvcalib`'s own names are
+    (`_gc`): a fresh process's first `calibrate(..., refine=True)` walked the heap for cycles
+    while the two made their classes."""
+    with collector_paused():
+        from . import _refine
+    return _refine
 
 
 class CalibrationError(ValueError):
@@ -253,8 +264,7 @@ def _point_arrays(result: Calibration) -> tuple:
 def _refined(result, world, pixels, mask, options, max_relative_rms, quick) -> Calibration:
     """`result` refined (inside the caller's trace): the closed form seeds `refine`, and the
     fit's check is made on the refined cameras."""
-    from . import _refine  # Optimistix and Lineax are imported only when refining
-
+    _refine = _refiner()
     # Failed cameras have NaN seeds, which `refine` leaves out (result -2); they stay NaN.
     # One camera goes in as a rig of one, where a failed seed is flagged rather than refused.
     seed = result.cameras  # (`refine` zeroes its skew unless it is estimated)
@@ -280,8 +290,7 @@ def _seed_is_forgotten(options: dict) -> bool:
     (`jax.grad` of `calibrate(..., refine=True)` of 4 cameras, fresh processes: the first call
     16.9-17.1 s against 19.8-20.5 s; in `jax.jit` 9.75 against 16.3 s, warm 1.34 against 2.27 ms;
     the gradient within 1e-9 relative, what the cancelling left)."""
-    from . import _refine
-
+    _refine = _refiner()
     fix = options.get("fix", ())
     fix = (fix,) if isinstance(fix, str) else tuple(fix)
     try:
@@ -314,9 +323,7 @@ def _refined_bucket(
 
 def _refine_padded(seed, world, pixels, mask, options):
     """`refine` of a rig already padded to its bucket."""
-    from . import _refine  # Optimistix and Lineax are imported only when refining
-
-    return _refine.refine(seed, world, pixels, mask, **options)
+    return _refiner().refine(seed, world, pixels, mask, **options)
 
 
 def poorly_fitted(refined, pixels, mask, max_relative_rms):

@@ -58,6 +58,26 @@ def test_a_first_call_takes_lapack_without_the_rest_of_scipy_linalg():
     assert out.stdout.splitlines() == ["800.0", "[]", "scipy.linalg.cython_lapack [1.0, 1.0]"]
 
 
+def test_a_first_refinement_imports_its_libraries_with_the_collector_paused():
+    """Optimistix and Lineax, imported at the first refinement (200-odd classes made), are
+    imported with Python's cyclic collector paused, as mvcalib's own modules are (`_gc`), and
+    the collector runs again afterwards."""
+    code = (
+        "import builtins, gc, sys, jax, mvcalib as mc\n"
+        "seen, load = {}, builtins.__import__\n"
+        "def spy(name, *args, **kwargs):\n"
+        "    if name in ('optimistix', 'lineax') and name not in sys.modules:\n"
+        "        seen[name] = gc.isenabled()\n"
+        "    return load(name, *args, **kwargs)\n"
+        "builtins.__import__ = spy\n"
+        "rig = mc.synthetic.random_rig(jax.random.key(0), n_cameras=2, noise=0.3)\n"
+        "result = mc.calibrate(rig.world, rig.pixels, rig.mask, refine=True)\n"
+        "print(sorted(seen.items()), gc.isenabled(), bool(result.ok.all()))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split("\n")[-2] == "[('lineax', False), ('optimistix', False)] True True"
+
+
 def test_every_public_name_resolves():
     assert len(mc.__all__) == len(set(mc.__all__))
     for name in mc.__all__:
