@@ -1169,13 +1169,13 @@ def solve_each(
 
     args, differentiable = jax.lax.stop_gradient(args), args
     problem = jnp.arange(size)
-    start = (take(problem) if queue else args, jax.vmap(init)(take(problem) if queue else args))
+    dynamic = jax.vmap(init)(take(problem) if queue else args)
     y = jnp.broadcast_to(y0, (size, *y0.shape))
     out = (
         jnp.zeros((n, *y0.shape), y0.dtype), jnp.zeros(n, jnp.int32), jnp.zeros(n, jnp.int32),
         jax.tree_util.tree_map(lambda x: jnp.zeros((n, *x.shape), x.dtype), kept),
     )  # fmt: skip
-    carry = (problem, jnp.asarray(size), y, start[1], jnp.zeros(size, jnp.int32), out)
+    carry = (problem, jnp.asarray(size), y, dynamic, jnp.zeros(size, jnp.int32), out)
     y, steps, result, kept = jax.lax.while_loop(lambda c: jnp.any(c[0] < n), body, carry)[-1]
     y = jax.vmap(solution)(y, differentiable)
     return jax.vmap(finish)(extra, y, steps, result, kept)
