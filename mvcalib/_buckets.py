@@ -321,6 +321,7 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
         self.traced = jit(fun, **kwargs)
         self._compiling: list[concurrent.futures.Future] = []
         self._seen: set = set()  # the signatures of the calls from Python so far
+        self._shapes: dict = {}  # their outputs' shapes and types (`ahead`'s stand-ins)
         functools.update_wrapper(self, fun)
 
     @functools.cached_property
@@ -340,17 +341,20 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
             build = self.quick if quick else self.optimised
             compiled = signature in self._seen and _holds_programs(build)
             if _AHEAD.get():
-                if compiled:
-                    raise _Lowered(None)  # compiled already
+                if compiled:  # (a stand-in all the same, for the programs that follow)
+                    raise _Lowered(_filled(self._shapes.get(signature)))
                 lowered = build.lower(*args, **kwargs)
                 self._compiling.append(_compiler().submit(lowered.compile))
                 self._seen.add(signature)
-                raise _Lowered(_stand_in(lowered))
+                self._shapes[signature] = _stand_in(lowered)
+                raise _Lowered(_filled(self._shapes[signature]))
             self._wait()
             if _compile_only:
                 out = None if compiled else build.lower(*args, **kwargs).compile()
             else:
                 out = build(*args, **kwargs)
+                if signature not in self._shapes:
+                    self._shapes[signature] = _shapes(out)
         self._seen.add(signature)
         return out
 
@@ -391,6 +395,7 @@ class jit:  # noqa: N801 (used as `jax.jit` is)
         """Forget every build's compiled programs (`jax.jit`'s `clear_cache`)."""
         self._wait()
         self._seen.clear()
+        self._shapes.clear()
         for build in ("traced", "optimised", "quick"):
             if build in self.__dict__:
                 getattr(self.__dict__[build], "clear_cache", lambda: None)()
@@ -451,19 +456,35 @@ class _Lowered(BaseException):
 
 
 def _stand_in(lowered):
-    """NumPy arrays of the shapes and types of a lowered program's outputs (`jax.jit`'s or
-    `eqx.filter_jit`'s), NaN where they are floating-point, else zero. (A weakly typed output,
-    which JAX's `out_info` does not show and NumPy cannot stand in for, would have the program
-    that takes it compiled for the wrong type: mvcalib's programs return none, which the tests
-    that count compiles check.)"""
-
-    def fill(x):
-        return np.full(x.shape, np.nan if np.issubdtype(x.dtype, np.inexact) else 0, x.dtype)
-
+    """The shapes and types of a lowered program's outputs (`jax.jit`'s or `eqx.filter_jit`'s),
+    as `jax.ShapeDtypeStruct`s in the outputs' tree. (A weakly typed output, which JAX's
+    `out_info` does not show and NumPy cannot stand in for, would have the program that takes it
+    compiled for the wrong type: mvcalib's programs return none, which the tests that count
+    compiles check.)"""
     inner = getattr(lowered, "lowered", None)  # `eqx.filter_jit`'s: JAX's, and its outputs' rebuild
     if inner is None:
-        return jax.tree_util.tree_map(fill, lowered.out_info)
-    return lowered.postprocess(jax.tree_util.tree_map(fill, inner.out_info))
+        return _shapes(lowered.out_info)
+    return lowered.postprocess(_shapes(inner.out_info))
+
+
+def _shapes(tree):
+    """`tree` with its arrays (or their descriptions) replaced by `jax.ShapeDtypeStruct`s."""
+    is_array = lambda x: hasattr(x, "shape") and hasattr(x, "dtype")  # noqa: E731
+    return jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype) if is_array(x) else x, tree
+    )
+
+
+def _filled(tree):
+    """NumPy arrays of the shapes and types in `tree` (`_shapes`), NaN where they are
+    floating-point, else zero; None for None."""
+
+    def fill(x):
+        if not isinstance(x, jax.ShapeDtypeStruct):
+            return x
+        return np.full(x.shape, np.nan if np.issubdtype(x.dtype, np.inexact) else 0, x.dtype)
+
+    return jax.tree_util.tree_map(fill, tree)
 
 
 @functools.cache
@@ -558,10 +579,10 @@ def ahead(fun, /, *args, **kwargs):
     waits for that compile instead of compiling again.
 
     Returns a stand-in of the program's outputs (NumPy arrays of their shapes and types, NaN or
-    zero), with which the `ahead` of a program that takes them can follow; `None` where nothing
-    was started. Only a hint: inside a trace, where the program is compiled already, or if `fun`
-    fails before its first program, nothing is started (a real call would raise the same
-    error)."""
+    zero), with which the `ahead` of a program that takes them can follow (`chain`), also where
+    the program is compiled already; `None` where nothing can follow. Only a hint: inside a
+    trace, where the program is compiled already, or if `fun` fails before its first program,
+    nothing is started (a real call would raise the same error)."""
     if not _top_level():
         return None
     token = _AHEAD.set(True)
@@ -576,6 +597,23 @@ def ahead(fun, /, *args, **kwargs):
     finally:
         _AHEAD.reset(token)
     return None
+
+
+def chain(first, /, *then, early: bool = True):
+    """`first()`, then each of `then` called with the one before's output: the last one's. Each
+    is a program (or runs up to one, as `ahead` asks); with `early`, every one of them is
+    compiled on another thread before the first runs, each traced with a stand-in of the one
+    before's outputs while XLA compiles that (`ahead`). Pass `early=False` for arrays whose
+    layout a stand-in would not have (split over devices: `applies`)."""
+    like = ahead(first) if early else None
+    for stage in then:
+        if like is None:
+            break
+        like = ahead(stage, like)
+    out = first()
+    for stage in then:
+        out = stage(out)
+    return out
 
 
 def _top_level() -> bool:

@@ -638,40 +638,34 @@ def _chain(Rrel, trel, shared, reference):
     return jax.lax.fori_loop(0, C - 1, grow, (linked, R, t))
 
 
-# Two programs, the rig's start and its joint solve, so that XLA compiles each on a thread of its
-# own while Python traces the second (`_buckets.ahead`): XLA compiles on one core and without
-# Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s as one
-# program, 2.6-3.0 s as two.
+# The rig's start is three programs and its joint solve a fourth, so that XLA compiles each on a
+# thread of its own while Python traces the next (`_buckets.chain`): XLA compiles on one core and
+# without Python's lock. Caliscope's rig from a fresh process (2 cores): the first call 3.4-4.0 s
+# as one program, 2.6-3.0 s as two. Only the middle one, the cameras' own solves, depends on the
+# solve's options (`free`, `loss`, `max_steps`): a call with other options compiles the poses of
+# every pair, the chain and the averaging no more (the larger part of the start: a 4 x 20 board
+# rig's compiled in 1.96 s without the own solves, 3.27 s with them).
 @functools.partial(_buckets.jit, jit=eqx.filter_jit)
-def _start(
-    target,
-    plane,
-    pixels,
-    mask,
-    cameras,
-    reference,
-    rcond,
-    max_relative_rms,
-    *,
-    planar,
-    given,
-    free,
-    loss,
-    max_steps,
-):
-    """The rig before the joint solve: cameras, frame poses (target to reference camera), the
-    pairs and frames used, each camera's status, the target's median distance. No derivatives
-    flow through it: `calibrate_rig` passes traced inputs through `stop_gradient` before the
-    call, so that under `grad` this program is not linearised."""
-    C, F, N = mask.shape
+def _start_pairs(data, rcond, *, planar, given):
+    """Every (camera, frame) pair's closed form: the cameras' first intrinsics (`Camera`s posed
+    by their first frame), the pairs' poses (target to camera) `Rp`, `tp`, which are `ok`, the
+    cameras whose intrinsics are `determined`, each pair's status and what its points fit to
+    alone, the target's median distance, and the homographies `H` (planar; else None).
+
+    No derivatives flow through the start: `calibrate_rig` passes traced inputs through
+    `stop_gradient` before the call, so that under `grad` these programs are not linearised.
+    `data`, as each of the start's programs takes it: target, its plane's frame, pixels, mask and
+    the given cameras (or None)."""
+    target, plane, pixels, mask, cameras = data
+    C = mask.shape[0]
     dtype = pixels.dtype
-    raw = pixels
     closed = mask  # the points the closed form takes
     if given:  # the given lens distortion removed first, so that the closed form is exact
         pixels = undistort_points(jax.tree_util.tree_map(lambda x: x[:, None], cameras), pixels)
         closed = mask & jnp.all(jnp.isfinite(pixels), -1)  # (a fisheye's beyond 90: NaN)
         pixels = jnp.where(closed[..., None], pixels, 0.0)
     K = cameras.K if given else None
+    H = None
     if planar:
         xy = plane.apply(target)[:, :2]
         K, determined, Rp, tp, pair_status, H = _pair_poses_planar(
@@ -705,37 +699,60 @@ def _start(
         dist=dist,
         lens=cameras.lens if given else "pinhole",
     )
-    solved = ok  # the (camera, frame) pairs of each camera's own solve
-    if not given and F <= OWN_FRAMES:
-        # each camera alone with its own frames: its intrinsics, distortion and the target's
-        # poses (the closed form neglects the distortion, which the rig's cameras share no frames
-        # to fix). Given cameras need none of it: their pixels were undistorted with their own
-        # lens, and the closed-form poses start the joint solve as well (caliscope's rig: the
-        # same 8 steps to the same RMS, in 0.04 against 0.29 s a call)
+    return own, Rp, tp, ok, determined, pair_status, alone, distance, H
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _start_own(data, pairs, *, planar, free, loss, max_steps):
+    """Each camera alone with its own frames (`_start_pairs`' `pairs`, cameras not given): its
+    intrinsics, distortion and the target's poses (the closed form neglects the distortion,
+    which the rig's cameras share no frames to fix). Given cameras need none of it: their pixels
+    were undistorted with their own lens, and the closed-form poses start the joint solve as well
+    (caliscope's rig: the same 8 steps to the same RMS, in 0.04 against 0.29 s a call). Returns
+    `pairs` with the cameras and poses refined, and which pairs the solves took."""
+    target, plane, pixels, mask, _ = data
+    own, Rp, tp, ok, determined, pair_status, alone, distance, H = pairs
+    C, F = mask.shape[:2]
+    if F <= OWN_FRAMES:
         own, Rp, tp = _refine_own(
-            own, Rp, tp, ok, distance, target, raw, mask, free, loss, max_steps
+            own, Rp, tp, ok, distance, target, pixels, mask, free, loss, max_steps
         )
-    elif not given:
-        # the same from `OWN_FRAMES` of each camera's frames, evenly spread; the other frames'
-        # poses from their homographies again, with the refined K (a 3-D target's DLT poses
-        # need no K)
-        take = _own_frames(ok, OWN_FRAMES)
-        pick = lambda a: jnp.take_along_axis(  # noqa: E731
-            a, take.reshape(take.shape + (1,) * (a.ndim - 2)), axis=1
-        )
-        used = pick(ok)
-        own, Rs, ts = _refine_own(
-            own, pick(Rp), pick(tp), used, distance, target, pick(raw), pick(mask), free, loss,
-            max_steps,
-        )  # fmt: skip
-        if planar:
-            Rc, tc = _planar_poses(plane, xy, own.K, H, closed)
-            Rp = jnp.where(jnp.all(jnp.isfinite(Rc), (-2, -1))[..., None, None], Rc, Rp)
-            tp = jnp.where(jnp.all(jnp.isfinite(tc), -1)[..., None], tc, tp)
-        rows = jnp.arange(C)[:, None]
-        Rp = Rp.at[rows, take].set(jnp.where(used[..., None, None], Rs, pick(Rp)))
-        tp = tp.at[rows, take].set(jnp.where(used[..., None], ts, pick(tp)))
-        solved = jnp.zeros_like(ok).at[rows, take].set(used)
+        return (own, Rp, tp, ok, determined, pair_status, alone, distance, H), ok
+    # the same from `OWN_FRAMES` of each camera's frames, evenly spread; the other frames' poses
+    # from their homographies again, with the refined K (a 3-D target's DLT poses need no K)
+    take = _own_frames(ok, OWN_FRAMES)
+    pick = lambda a: jnp.take_along_axis(  # noqa: E731
+        a, take.reshape(take.shape + (1,) * (a.ndim - 2)), axis=1
+    )
+    used = pick(ok)
+    own, Rs, ts = _refine_own(
+        own, pick(Rp), pick(tp), used, distance, target, pick(pixels), pick(mask), free, loss,
+        max_steps,
+    )  # fmt: skip
+    if planar:
+        xy = plane.apply(target)[:, :2]
+        Rc, tc = _planar_poses(plane, xy, own.K, H, mask)
+        Rp = jnp.where(jnp.all(jnp.isfinite(Rc), (-2, -1))[..., None, None], Rc, Rp)
+        tp = jnp.where(jnp.all(jnp.isfinite(tc), -1)[..., None], tc, tp)
+    rows = jnp.arange(C)[:, None]
+    Rp = Rp.at[rows, take].set(jnp.where(used[..., None, None], Rs, pick(Rp)))
+    tp = tp.at[rows, take].set(jnp.where(used[..., None], ts, pick(tp)))
+    solved = jnp.zeros_like(ok).at[rows, take].set(used)
+    return (own, Rp, tp, ok, determined, pair_status, alone, distance, H), solved
+
+
+@functools.partial(_buckets.jit, jit=eqx.filter_jit)
+def _start_rig(data, pairs, solved, reference, max_relative_rms, held, robust, *, planar, given):
+    """The rig before the joint solve, from the pairs' poses (`_start_pairs`, or `_start_own`'s
+    with `solved` the pairs its solves took; None for given cameras): cameras, frame poses
+    (target to reference camera), the pairs and frames used, each camera's status, the target's
+    median distance, the pairs' RMS alone and their own poses. `held`: the given cameras' poses
+    are held; `robust`: the solve's loss is robust (both arrays, so that other options compile
+    nothing here)."""
+    target, _, pixels, mask, cameras = data
+    own, Rp, tp, ok, determined, pair_status, alone, distance, _ = pairs
+    C, F = mask.shape[:2]
+    dtype = pixels.dtype
     Rrel, trel, shared, agree = _relative_poses(Rp, tp, ok, distance)
     lost = jnp.zeros(C, bool)
     if not given:
@@ -747,17 +764,18 @@ def _start(
     # A camera whose own poses disagree with the rest's in most frames (those of the cameras
     # that fit their own frames, where poses are not held) is left out: POOR_FIT. The rest link
     # through the frames where they agree, and through the others only where nothing else does.
-    held = given and not any(i in POSE_INDICES for i in free)
     judged = ~lost[:, None] & ~lost[None, :]
-    disagreeing = jnp.zeros(C, bool) if held else _disagreeing(
+    disagreeing = ~held & _disagreeing(
         jnp.where(judged, shared, 0.0), jnp.where(judged, agree, 0.0)
-    )  # fmt: skip
+    )
     weight = agree + (shared - agree) / (F + 1)
     weight = jnp.where(lost[:, None] | lost[None, :], shared / (F + 1), weight)
     weight = jnp.where(disagreeing[:, None] | disagreeing[None, :], 0.0, weight)
     linked, R, t = _chain(Rrel, trel, weight, reference)
-    if held:  # the given poses
-        linked, R, t = jnp.ones_like(linked), cameras.R, cameras.t
+    if given:  # held: the given poses
+        linked = linked | held
+        R = jnp.where(held, cameras.R, R)
+        t = jnp.where(held, cameras.t, t)
     usable = linked & jnp.any(ok, 1)
     # no frame with enough points is TOO_FEW_POINTS before its intrinsics, which no frame could
     # determine, are DEGENERATE (as the docstring said: a camera that saw 3 corners a frame was
@@ -796,7 +814,7 @@ def _start(
     # left out of the solve, and not counted as skipped, until 2026-12-06)
     minimum = MIN_PLANE_POINTS if planar else MIN_OBJECT_POINTS
     beyond = (pair_status == Status.TOO_FEW_POINTS) & (jnp.sum(mask, -1) >= minimum)
-    failed = (pair_status == Status.DEGENERATE) | beyond if loss is None else jnp.any(mask, -1)
+    failed = jnp.where(robust, jnp.any(mask, -1), (pair_status == Status.DEGENERATE) | beyond)
     pair = pair | (failed & usable[:, None] & frame_ok[None, :])
     initial = eqx.tree_at(lambda c: (c.R, c.t), own, (R, t))
     own_poses = RigidTransform(  # (`RigCalibration.step_spread`)
@@ -1979,21 +1997,32 @@ def calibrate_rig(
         # values, so that its program is not linearised (the first `jax.grad` of a camera's
         # position by the pixels, 4 cameras x 40 frames, fresh process: 20.0-20.8 against
         # 24.1-24.3 s)
-        start_inputs = (points, plane, image, mask, given)
+        data = (points, plane, image, mask, given)
         if not concrete:
-            start_inputs = jax.lax.stop_gradient(start_inputs)
-        start = functools.partial(
-            _start, *start_inputs, index, rcond, relative_rms,
-            planar=planar, given=cameras is not None, **options,
+            data = jax.lax.stop_gradient(data)
+        known = cameras is not None
+        pairs = functools.partial(
+            _start_pairs, data, rcond, planar=planar, given=known, quick=quick
+        )
+        own = functools.partial(
+            _start_own, data, planar=planar, free=free, loss=loss, max_steps=max_steps,
+            quick=quick,
+        )  # fmt: skip
+        posed = functools.partial(
+            _start_rig, data, reference=index, max_relative_rms=relative_rms,
+            held=np.bool_(known and not any(i in POSE_INDICES for i in free)),
+            robust=np.bool_(loss is not None), planar=planar, given=known, quick=quick,
         )  # fmt: skip
         joint = functools.partial(
             _calibrate_rig, target=points, pixels=image, mask=mask, observed=observed,
             reference=index, max_relative_rms=relative_rms, given=given, **options,
         )  # fmt: skip
-        if concrete:  # both programs compile on other threads, the second traced meanwhile
-            if (start_like := _buckets.ahead(start)) is not None:
-                _buckets.ahead(joint, start_like)
-        out = joint(start())
+        if known:  # (no own solves)
+            start = (pairs, lambda closed: posed(closed, None))
+        else:
+            start = (pairs, own, lambda out: posed(*out))
+        # (each program compiled on another thread while the next is traced)
+        out = _buckets.chain(*start, joint, early=concrete)
         if frames != F:
             out = {k: _buckets.first(v, F, axis=_FRAME_AXIS[k]) if k in _FRAME_AXIS else v
                    for k, v in out.items()}  # fmt: skip

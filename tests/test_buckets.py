@@ -225,7 +225,7 @@ def _photos():
 @pytest.mark.parametrize(
     "call, programs",
     [
-        (_board_rig, ("_start", "_calibrate_rig")),
+        (_board_rig, ("_start_pairs", "_start_own", "_start_rig", "_calibrate_rig")),
         (_planar_views, ("_closed_form", "_refine_views", "_finish")),
         (_photos, ("_calibrate", "_refine_all", "_triangulate")),
         (lambda: demo.run().calibration, ("_paper_scene", "_pipeline")),
@@ -274,8 +274,12 @@ def test_ahead_is_only_a_hint():
     assert isinstance(stand_in, np.ndarray) and stand_in.shape == (3,) and np.isnan(stand_in).all()
     np.testing.assert_array_equal(checked(x, 2), 2 * x)  # waits for it: no second trace
     assert calls == [2] and not scaled._compiling
-    assert _buckets.ahead(checked, x, 2) is None  # compiled already: nothing to do
-    assert calls == [2] and not scaled._compiling
+    # compiled already (ahead, or by a call): nothing to do but stand in for the outputs
+    assert np.isnan(_buckets.ahead(checked, x, 2)).all()
+    y = np.arange(4.0)
+    np.testing.assert_array_equal(checked(y, 2), 2 * y)
+    assert _buckets.ahead(checked, y, 2).shape == (4,)
+    assert calls == [2, 2] and not scaled._compiling
 
 
 # --------------------------------------------------------------------------------- side by side
@@ -325,9 +329,10 @@ def test_a_refinement_in_pieces_is_the_whole_to_the_last_bit(caplog):
 def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
     """`calibrate_rig` pads a concrete rig's frames up to a bucket (32, 48, 64, 96, ...) with
     frames nobody saw: recordings of 40 and 45 frames, and the second from another reference
-    camera, compile each of its programs once. The
-    answer is the unpadded program's to its solves' tolerance (they stop at steps of 1e-5
-    standard errors); measured: the same steps, centres 1.3e-6 standard errors apart."""
+    camera, compile each of its programs once; other options (loss, free parameters) compile
+    again only the programs of the solves, on other threads. The answer is the unpadded
+    program's to its solves' tolerance (they stop at steps of 1e-5 standard errors); measured:
+    the same steps, centres 1.3e-6 standard errors apart."""
     import mvcalib._rig
 
     rig = mc.synthetic.board_rig(jax.random.key(0), n_cameras=4, n_frames=45, noise=0.3)
@@ -337,8 +342,16 @@ def test_recordings_of_other_lengths_reuse_the_rig_s_programs(caplog):
         full = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
         # another reference camera is an argument of the same programs (it was a constant)
         other = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, reference=2)
-    for name in ("_start", "_calibrate_rig"):
+        for name in ("_start_pairs", "_start_own", "_start_rig", "_calibrate_rig"):
+            assert len(_compiled_on(caplog, name)) == 1, name
+        robust = mc.calibrate_rig(rig.target, rig.pixels, rig.mask, loss=mc.Huber(1.0),
+                                  fix="distortion")  # fmt: skip
+    for name in ("_start_pairs", "_start_rig"):
         assert len(_compiled_on(caplog, name)) == 1, name
+    for name in ("_start_own", "_calibrate_rig"):  # (the first program's a stand-in all the same)
+        threads = _compiled_on(caplog, name)
+        assert len(threads) == 2 and threads[1] != "MainThread", (name, threads)
+    assert bool(robust.ok.all()) and "k1" not in robust.parameter_names
     assert bool(other.ok.all()) and np.allclose(other.cameras.center[2], 0.0)
     np.testing.assert_allclose(other.rms, full.rms, rtol=1e-7)
     N = rig.target.shape[0]
@@ -366,7 +379,7 @@ def test_rigs_of_five_and_six_cameras_share_the_rig_s_programs(caplog):
     with caplog.at_level(logging.DEBUG), jax.log_compiles():
         five = mc.calibrate_rig(rig.target, rig.pixels[:5], rig.mask[:5])
         six = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
-    for name in ("_start", "_calibrate_rig"):
+    for name in ("_start_pairs", "_start_own", "_start_rig", "_calibrate_rig"):
         assert len(_compiled_on(caplog, name)) == 1, name
     assert bool(six.ok.all()) and six.cameras.batch_shape == (6,)
     assert five.residuals.shape[0] == five.covariance.shape[0] == five.alone_rms.shape[0] == 5

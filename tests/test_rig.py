@@ -172,8 +172,8 @@ def test_a_rig_that_once_wandered_off_comes_out_right(monkeypatch, request):
     solve ended in a minimum at 3.42 px RMS, camera 2 at 11.4 px and every camera OK (caught
     then by the retry from its resection)."""
     monkeypatch.setattr(mc._rig._sharding, "cpu_chunk", lambda n, size: None)
-    mc._rig._start.clear_cache()  # (traced with the own solves side by side, for this test only)
-    request.addfinalizer(mc._rig._start.clear_cache)
+    mc._rig._start_own.clear_cache()  # (traced with the solves side by side: this test only)
+    request.addfinalizer(mc._rig._start_own.clear_cache)
     rig = mc.synthetic.board_rig(
         jax.random.key(10), 16, 100, target=mc.synthetic.board(6, 8, 0.05), noise=0.3
     )
@@ -253,8 +253,8 @@ def test_own_solves_from_some_of_the_frames_reach_the_same_rig(target, monkeypat
     rig = _rig(target)
     every = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
     monkeypatch.setattr(mc._rig, "OWN_FRAMES", 24)
-    mc._rig._start.clear_cache()  # (traced with the smaller cap, for this test only)
-    request.addfinalizer(mc._rig._start.clear_cache)
+    mc._rig._start_own.clear_cache()  # (traced with the smaller cap, for this test only)
+    request.addfinalizer(mc._rig._start_own.clear_cache)
     some = mc.calibrate_rig(rig.target, rig.pixels, rig.mask)
     assert bool(some.ok.all()) and bool(some.converged)
     a, b = np.asarray(some.cameras.center), np.asarray(every.cameras.center)
